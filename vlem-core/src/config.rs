@@ -1,0 +1,262 @@
+//! The TOML configuration of a run: which implementation each stage uses, and its parameters.
+//!
+//! The file is plain data. Sections `[dataset]`, `[pipeline]` and `[query]` are parsed here with
+//! `deny_unknown_fields`; the stage sections `[tracker]`, `[proposer]`, `[encoder]`, `[map]` and
+//! `[query.segmenter]` hold `kind = "<registered name>"` plus that implementation's own parameters,
+//! which its build step parses (also refusing unknown keys). Building never touches the network.
+//!
+//! ```toml
+//! [dataset]
+//! path = "data/living-room"   # relative to this file
+//!
+//! [tracker]
+//! kind = "ground-truth"
+//!
+//! [encoder]
+//! kind = "colour-names"
+//!
+//! [map]
+//! kind = "point-cloud"
+//! max_points = 1000000
+//!
+//! [query]
+//! texts = ["red", "white wall"]
+//! ```
+
+use std::path::{Path, PathBuf};
+
+use serde::{Deserialize, Serialize};
+
+use crate::error::{CoreError, Result};
+
+/// A whole run configuration.
+#[derive(Clone, Debug, Deserialize, Serialize, PartialEq)]
+#[serde(deny_unknown_fields)]
+pub struct Config {
+    /// Where frames come from.
+    #[serde(default)]
+    pub dataset: DatasetConfig,
+    /// Threading and real-time behaviour.
+    #[serde(default)]
+    pub pipeline: PipelineConfig,
+    /// Pose source; default `ground-truth`.
+    #[serde(default = "default_tracker")]
+    pub tracker: StageConfig,
+    /// Region proposer, for encoders that need regions.
+    #[serde(default)]
+    pub proposer: Option<StageConfig>,
+    /// Vision-language encoder; leave out for a geometry-only map.
+    #[serde(default)]
+    pub encoder: Option<StageConfig>,
+    /// Embedding map; leave out for tracking only.
+    #[serde(default)]
+    pub map: Option<StageConfig>,
+    /// Queries run after mapping, and how to segment them.
+    #[serde(default)]
+    pub query: QueryConfig,
+}
+
+fn default_tracker() -> StageConfig {
+    StageConfig::named("ground-truth")
+}
+
+impl Config {
+    /// Reads and parses a config file.
+    ///
+    /// # Errors
+    /// [`CoreError::Config`] with the parser's message, which names the line and key.
+    pub fn from_file(path: &Path) -> Result<Self> {
+        let text = std::fs::read_to_string(path).map_err(|e| CoreError::io(path, e))?;
+        Self::from_toml(&text).map_err(|message| CoreError::Config {
+            path: path.to_path_buf(),
+            message,
+        })
+    }
+
+    /// Parses config text; the error is the parser's message.
+    ///
+    /// # Errors
+    /// The TOML parser's message (line, column, key).
+    pub fn from_toml(text: &str) -> std::result::Result<Self, String> {
+        toml::from_str(text).map_err(|e| e.to_string().trim_end().to_owned())
+    }
+
+    /// The config as TOML text.
+    pub fn to_toml(&self) -> String {
+        toml::to_string_pretty(self).unwrap_or_default()
+    }
+}
+
+/// Which implementation a stage uses, and its parameters.
+#[derive(Clone, Debug, Deserialize, Serialize, PartialEq)]
+pub struct StageConfig {
+    /// Registered implementation name (see `vlem plugins`).
+    pub kind: String,
+    /// Every other key of the section; the implementation parses and validates them.
+    #[serde(flatten)]
+    pub params: toml::Table,
+}
+
+impl StageConfig {
+    /// A stage with default parameters.
+    pub fn named(kind: &str) -> Self {
+        Self {
+            kind: kind.to_owned(),
+            params: toml::Table::new(),
+        }
+    }
+}
+
+/// Dataset layouts vlem reads.
+#[derive(Clone, Copy, Debug, Default, Deserialize, Serialize, PartialEq, Eq)]
+#[serde(rename_all = "kebab-case")]
+pub enum DatasetKind {
+    /// Detect from the folder's content.
+    #[default]
+    Auto,
+    /// ICL-NUIM / Redwood / Open3D layout: `color/`, `depth/`, intrinsics JSON, `.log` trajectory.
+    Icl,
+    /// TUM RGB-D: `rgb.txt`, `depth.txt`, `groundtruth.txt`.
+    Tum,
+    /// ScanNet export: `color/`, `depth/`, `pose/`, `intrinsic/`.
+    Scannet,
+    /// Replica as packaged by NICE-SLAM: `results/`, `traj.txt`.
+    Replica,
+}
+
+/// `[dataset]`: where frames come from.
+#[derive(Clone, Debug, Default, Deserialize, Serialize, PartialEq)]
+#[serde(deny_unknown_fields)]
+pub struct DatasetConfig {
+    /// Dataset folder, relative to the config file; `--dataset` on the command line overrides it.
+    #[serde(default)]
+    pub path: Option<PathBuf>,
+    /// Layout; default `auto`.
+    #[serde(default)]
+    pub kind: DatasetKind,
+    /// Raw depth units per metre; default per layout (ICL/ScanNet 1000, TUM 5000, Replica 6553.5).
+    #[serde(default)]
+    pub depth_scale: Option<f64>,
+    /// Use every n-th frame; default 1.
+    #[serde(default)]
+    pub stride: Option<usize>,
+    /// Stop after this many frames (after the stride).
+    #[serde(default)]
+    pub max_frames: Option<usize>,
+    /// Intrinsics file for layouts that do not fix its name (ICL/Redwood), relative to the dataset.
+    #[serde(default)]
+    pub intrinsics: Option<PathBuf>,
+    /// Trajectory file for layouts that do not fix its name (ICL/Redwood), relative to the dataset.
+    #[serde(default)]
+    pub trajectory: Option<PathBuf>,
+}
+
+/// Whether frames may be skipped.
+#[derive(Clone, Copy, Debug, Default, Deserialize, Serialize, PartialEq, Eq)]
+#[serde(rename_all = "kebab-case")]
+pub enum Mode {
+    /// Every frame is tracked and integrated.
+    #[default]
+    Offline,
+    /// Frames arrive at `frame_rate`; those that arrive while the embedding stage is busy are
+    /// tracked but not embedded (counted as skipped), as in the paper.
+    RealTime,
+}
+
+/// `[pipeline]`: threading and real-time behaviour.
+#[derive(Clone, Debug, Deserialize, Serialize, PartialEq)]
+#[serde(deny_unknown_fields)]
+pub struct PipelineConfig {
+    /// `offline` (default) or `real-time`.
+    #[serde(default)]
+    pub mode: Mode,
+    /// Frames that may wait between tracking and embedding; default 2.
+    #[serde(default = "default_queue")]
+    pub queue_capacity: usize,
+    /// Sensor frame rate that real-time mode replays the dataset at; default 30.
+    #[serde(default = "default_frame_rate")]
+    pub frame_rate: f64,
+}
+
+fn default_queue() -> usize {
+    2
+}
+
+fn default_frame_rate() -> f64 {
+    30.0
+}
+
+impl Default for PipelineConfig {
+    fn default() -> Self {
+        Self {
+            mode: Mode::Offline,
+            queue_capacity: default_queue(),
+            frame_rate: default_frame_rate(),
+        }
+    }
+}
+
+/// `[query]`: what `vlem run` / `vlem demo` ask the finished map, and how answers are segmented.
+#[derive(Clone, Debug, Deserialize, Serialize, PartialEq)]
+#[serde(deny_unknown_fields)]
+pub struct QueryConfig {
+    /// Queries answered after mapping; default none.
+    #[serde(default)]
+    pub texts: Vec<String>,
+    /// Segmenter; default `threshold`.
+    #[serde(default = "default_segmenter")]
+    pub segmenter: StageConfig,
+}
+
+fn default_segmenter() -> StageConfig {
+    StageConfig::named("threshold")
+}
+
+impl Default for QueryConfig {
+    fn default() -> Self {
+        Self {
+            texts: Vec::new(),
+            segmenter: default_segmenter(),
+        }
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn minimal_config_gets_documented_defaults() {
+        let c = Config::from_toml("[map]\nkind = \"point-cloud\"\nmax_points = 10\n").unwrap();
+        assert_eq!(c.tracker.kind, "ground-truth");
+        assert_eq!(c.pipeline.mode, Mode::Offline);
+        assert_eq!(c.pipeline.queue_capacity, 2);
+        assert_eq!(c.query.segmenter.kind, "threshold");
+        let map = c.map.unwrap();
+        assert_eq!(
+            map.params.get("max_points").and_then(|v| v.as_integer()),
+            Some(10)
+        );
+        assert!(c.encoder.is_none());
+    }
+
+    #[test]
+    fn unknown_keys_are_errors_that_name_the_key_and_line() {
+        let err = Config::from_toml("[dataset]\npath = \"x\"\ndepth_scael = 1000.0\n").unwrap_err();
+        assert!(err.contains("line 3"), "{err}");
+        assert!(err.contains("unknown field `depth_scael`"), "{err}");
+        let err = Config::from_toml("[pipline]\n").unwrap_err();
+        assert!(err.contains("unknown field `pipline`"), "{err}");
+        let err = Config::from_toml("[pipeline]\nmode = \"fast\"\n").unwrap_err();
+        assert!(err.contains("unknown variant `fast`"), "{err}");
+    }
+
+    #[test]
+    fn config_file_errors_name_the_file() {
+        let err = Config::from_file(Path::new("/nonexistent/vlem.toml")).unwrap_err();
+        assert!(
+            err.to_string().starts_with("/nonexistent/vlem.toml: "),
+            "{err}"
+        );
+    }
+}

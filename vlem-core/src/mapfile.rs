@@ -1,0 +1,390 @@
+//! The map file (`map.vlem`): a versioned, checksummed, crash-safe snapshot of any map.
+//!
+//! Layout (all integers and floats little-endian):
+//!
+//! | bytes | content |
+//! |---|---|
+//! | 8 | magic `VLEMMAP\0` |
+//! | 4 | format version (`u32`, currently 1) |
+//! | 4 | header length `H` (`u32`) |
+//! | H | header, UTF-8 JSON: map kind, point count, dimension, encoder config, provenance |
+//! | 12·n | positions, `f32` x, y, z per point (map frame, metres) |
+//! | 3·n | colours, `u8` r, g, b per point |
+//! | 4·n·d | embeddings, `f32`, one unit-norm row per point |
+//! | 4 | CRC-32 (IEEE) of every byte before it |
+//!
+//! Writing goes to a temporary file in the same directory, which is synced and then renamed over
+//! the target, so a crash leaves either the old file or the new one, never a torn one.
+
+use std::fs::File;
+use std::io::{BufWriter, Write};
+use std::path::{Path, PathBuf};
+
+use serde::{Deserialize, Serialize};
+
+use crate::config::StageConfig;
+use crate::error::{CoreError, Result};
+
+/// First bytes of every map file.
+pub const MAGIC: &[u8; 8] = b"VLEMMAP\0";
+/// The format version this build writes and reads.
+pub const FORMAT_VERSION: u32 = 1;
+const PREFIX_LEN: usize = 16;
+
+/// Where a map came from, stored in the file header.
+#[derive(Clone, Debug, Default, Deserialize, Serialize, PartialEq)]
+pub struct MapMetadata {
+    /// The encoder that made the embeddings (so `vlem query` can embed text the same way).
+    pub encoder: Option<StageConfig>,
+    /// Directory the encoder's relative paths are resolved against.
+    pub config_dir: Option<PathBuf>,
+    /// Frames integrated into the map.
+    pub frames_integrated: usize,
+    /// Version of vlem that wrote the file.
+    pub vlem_version: String,
+}
+
+/// Every element of a map as point, colour and embedding.
+#[derive(Clone, Debug, Default, PartialEq)]
+pub struct MapSnapshot {
+    /// Registered name of the map that produced it.
+    pub map_kind: String,
+    /// Embedding dimension (0: geometry only).
+    pub dim: usize,
+    /// Positions in the map frame, metres.
+    pub positions: Vec<[f32; 3]>,
+    /// RGB colours.
+    pub colours: Vec<[u8; 3]>,
+    /// Row-major `len x dim` unit-norm embeddings.
+    pub embeddings: Vec<f32>,
+    /// Provenance.
+    pub metadata: MapMetadata,
+}
+
+impl MapSnapshot {
+    /// Number of points.
+    pub fn len(&self) -> usize {
+        self.positions.len()
+    }
+
+    /// Whether there are no points.
+    pub fn is_empty(&self) -> bool {
+        self.positions.is_empty()
+    }
+
+    /// Checks that the arrays agree in length.
+    ///
+    /// # Errors
+    /// [`CoreError::DimensionMismatch`] naming the array that disagrees.
+    pub fn validate(&self) -> Result<()> {
+        let n = self.positions.len();
+        if self.colours.len() != n {
+            return Err(CoreError::DimensionMismatch {
+                what: "snapshot colours (count)".into(),
+                expected: n,
+                actual: self.colours.len(),
+            });
+        }
+        if self.embeddings.len() != n * self.dim {
+            return Err(CoreError::DimensionMismatch {
+                what: "snapshot embeddings (values)".into(),
+                expected: n * self.dim,
+                actual: self.embeddings.len(),
+            });
+        }
+        Ok(())
+    }
+}
+
+#[derive(Deserialize, Serialize)]
+#[serde(deny_unknown_fields)]
+struct Header {
+    map_kind: String,
+    points: u64,
+    dim: u64,
+    embedding_type: String,
+    metadata: MapMetadata,
+}
+
+/// CRC-32 over everything written through it.
+struct Checksummed<W: Write> {
+    inner: W,
+    crc: crc32fast::Hasher,
+}
+
+impl<W: Write> Write for Checksummed<W> {
+    fn write(&mut self, buf: &[u8]) -> std::io::Result<usize> {
+        let n = self.inner.write(buf)?;
+        self.crc.update(&buf[..n]);
+        Ok(n)
+    }
+
+    fn flush(&mut self) -> std::io::Result<()> {
+        self.inner.flush()
+    }
+}
+
+/// Writes `snapshot` to `path` atomically (temporary file, sync, rename). Returns the file size.
+///
+/// # Errors
+/// [`CoreError::Io`] naming the file, or an inconsistent snapshot.
+pub fn write_map_file(path: &Path, snapshot: &MapSnapshot) -> Result<u64> {
+    snapshot.validate()?;
+    let dir = match path.parent() {
+        Some(p) if !p.as_os_str().is_empty() => p.to_path_buf(),
+        _ => PathBuf::from("."),
+    };
+    let file_name = path
+        .file_name()
+        .map(|n| n.to_string_lossy().into_owned())
+        .unwrap_or_else(|| "map.vlem".into());
+    let tmp = dir.join(format!(".{file_name}.tmp-{}", std::process::id()));
+    let result = write_to(&tmp, snapshot).and_then(|size| {
+        std::fs::rename(&tmp, path).map_err(|e| CoreError::io(path, e))?;
+        // Make the rename itself durable; not every platform can open a directory.
+        if let Ok(d) = File::open(&dir) {
+            let _ = d.sync_all();
+        }
+        Ok(size)
+    });
+    if result.is_err() {
+        let _ = std::fs::remove_file(&tmp);
+    }
+    result
+}
+
+fn write_to(tmp: &Path, snapshot: &MapSnapshot) -> Result<u64> {
+    let io = |e| CoreError::io(tmp, e);
+    let header = Header {
+        map_kind: snapshot.map_kind.clone(),
+        points: snapshot.len() as u64,
+        dim: snapshot.dim as u64,
+        embedding_type: "f32".into(),
+        metadata: snapshot.metadata.clone(),
+    };
+    let header = serde_json::to_vec(&header).map_err(|e| CoreError::MapFile {
+        path: tmp.to_path_buf(),
+        reason: format!("cannot encode header: {e}"),
+    })?;
+    let header_len = u32::try_from(header.len()).map_err(|_| CoreError::MapFile {
+        path: tmp.to_path_buf(),
+        reason: "header larger than 4 GiB".into(),
+    })?;
+    let file = File::create(tmp).map_err(io)?;
+    let mut w = Checksummed {
+        inner: BufWriter::with_capacity(1 << 20, file),
+        crc: crc32fast::Hasher::new(),
+    };
+    w.write_all(MAGIC).map_err(io)?;
+    w.write_all(&FORMAT_VERSION.to_le_bytes()).map_err(io)?;
+    w.write_all(&header_len.to_le_bytes()).map_err(io)?;
+    w.write_all(&header).map_err(io)?;
+    let mut buf = Vec::with_capacity(1 << 16);
+    for chunk in snapshot.positions.chunks(4096) {
+        buf.clear();
+        chunk
+            .iter()
+            .flatten()
+            .for_each(|x| buf.extend_from_slice(&x.to_le_bytes()));
+        w.write_all(&buf).map_err(io)?;
+    }
+    for chunk in snapshot.colours.chunks(1 << 14) {
+        buf.clear();
+        chunk.iter().for_each(|c| buf.extend_from_slice(c));
+        w.write_all(&buf).map_err(io)?;
+    }
+    for chunk in snapshot.embeddings.chunks(1 << 14) {
+        buf.clear();
+        chunk
+            .iter()
+            .for_each(|x| buf.extend_from_slice(&x.to_le_bytes()));
+        w.write_all(&buf).map_err(io)?;
+    }
+    let crc = w.crc.clone().finalize();
+    let mut inner = w.inner;
+    inner.write_all(&crc.to_le_bytes()).map_err(io)?;
+    let file = inner
+        .into_inner()
+        .map_err(|e| CoreError::io(tmp, e.into_error()))?;
+    file.sync_all().map_err(io)?;
+    Ok(file.metadata().map_err(io)?.len())
+}
+
+/// Reads a map file written by [`write_map_file`].
+///
+/// # Errors
+/// [`CoreError::MapFile`] for a foreign file (bad magic), a newer format version, a truncated or
+/// over-long file, a checksum mismatch or a malformed header; [`CoreError::Io`] when unreadable.
+pub fn read_map_file(path: &Path) -> Result<MapSnapshot> {
+    let bytes = std::fs::read(path).map_err(|e| CoreError::io(path, e))?;
+    let fail = |reason: String| CoreError::MapFile {
+        path: path.to_path_buf(),
+        reason,
+    };
+    if bytes.len() < MAGIC.len() || &bytes[..MAGIC.len()] != MAGIC {
+        return Err(fail("not a vlem map file (wrong magic bytes)".into()));
+    }
+    if bytes.len() < PREFIX_LEN {
+        return Err(fail(format!(
+            "truncated: {} bytes, shorter than the file prefix",
+            bytes.len()
+        )));
+    }
+    let word =
+        |at: usize| u32::from_le_bytes([bytes[at], bytes[at + 1], bytes[at + 2], bytes[at + 3]]);
+    let version = word(8);
+    if version != FORMAT_VERSION {
+        return Err(fail(format!(
+            "format version {version}, this build of vlem reads version {FORMAT_VERSION}"
+        )));
+    }
+    let header_len = word(12) as usize;
+    let header_end = PREFIX_LEN + header_len;
+    if bytes.len() < header_end + 4 {
+        return Err(fail(format!(
+            "truncated: {} bytes, the header alone needs {}",
+            bytes.len(),
+            header_end + 4
+        )));
+    }
+    let header: Header = serde_json::from_slice(&bytes[PREFIX_LEN..header_end])
+        .map_err(|e| fail(format!("malformed header: {e}")))?;
+    if header.embedding_type != "f32" {
+        return Err(fail(format!(
+            "unknown embedding type `{}`",
+            header.embedding_type
+        )));
+    }
+    let n = usize::try_from(header.points).map_err(|_| fail("point count overflows".into()))?;
+    let dim = usize::try_from(header.dim).map_err(|_| fail("dimension overflows".into()))?;
+    let payload = n
+        .checked_mul(12 + 3)
+        .and_then(|a| n.checked_mul(dim)?.checked_mul(4)?.checked_add(a))
+        .ok_or_else(|| fail("point count and dimension overflow".into()))?;
+    let expected = header_end + payload + 4;
+    if bytes.len() != expected {
+        let what = if bytes.len() < expected {
+            "truncated"
+        } else {
+            "trailing bytes"
+        };
+        return Err(fail(format!(
+            "{what}: {} bytes, {n} points of dimension {dim} need {expected}",
+            bytes.len()
+        )));
+    }
+    let stored = word(expected - 4);
+    let actual = crc32fast::hash(&bytes[..expected - 4]);
+    if stored != actual {
+        return Err(fail(format!(
+            "checksum mismatch (stored {stored:08x}, computed {actual:08x}): the file is corrupted"
+        )));
+    }
+    let f32_at =
+        |at: usize| f32::from_le_bytes([bytes[at], bytes[at + 1], bytes[at + 2], bytes[at + 3]]);
+    let mut at = header_end;
+    let positions = (0..n)
+        .map(|i| {
+            let p = at + i * 12;
+            [f32_at(p), f32_at(p + 4), f32_at(p + 8)]
+        })
+        .collect();
+    at += n * 12;
+    let colours = bytes[at..at + n * 3]
+        .chunks_exact(3)
+        .map(|c| [c[0], c[1], c[2]])
+        .collect();
+    at += n * 3;
+    let embeddings = bytes[at..at + n * dim * 4]
+        .chunks_exact(4)
+        .map(|c| f32::from_le_bytes([c[0], c[1], c[2], c[3]]))
+        .collect();
+    Ok(MapSnapshot {
+        map_kind: header.map_kind,
+        dim,
+        positions,
+        colours,
+        embeddings,
+        metadata: header.metadata,
+    })
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    fn sample() -> MapSnapshot {
+        MapSnapshot {
+            map_kind: "point-cloud".into(),
+            dim: 2,
+            positions: vec![[0.0, 1.0, 2.0], [-1.5, 0.25, 3.0]],
+            colours: vec![[255, 0, 0], [1, 2, 3]],
+            embeddings: vec![1.0, 0.0, 0.6, 0.8],
+            metadata: MapMetadata {
+                encoder: Some(StageConfig::named("colour-names")),
+                config_dir: Some("/tmp".into()),
+                frames_integrated: 5,
+                vlem_version: "0.1.0".into(),
+            },
+        }
+    }
+
+    #[test]
+    fn round_trip_is_lossless() {
+        let dir = tempfile::tempdir().unwrap();
+        let path = dir.path().join("map.vlem");
+        let size = write_map_file(&path, &sample()).unwrap();
+        assert_eq!(size, std::fs::metadata(&path).unwrap().len());
+        assert_eq!(read_map_file(&path).unwrap(), sample());
+        // No temporary file is left behind.
+        assert_eq!(std::fs::read_dir(dir.path()).unwrap().count(), 1);
+    }
+
+    #[test]
+    fn truncated_corrupted_and_foreign_files_are_refused() {
+        let dir = tempfile::tempdir().unwrap();
+        let path = dir.path().join("map.vlem");
+        write_map_file(&path, &sample()).unwrap();
+        let good = std::fs::read(&path).unwrap();
+
+        std::fs::write(&path, &good[..good.len() - 10]).unwrap();
+        let err = read_map_file(&path).unwrap_err().to_string();
+        assert!(err.contains("truncated"), "{err}");
+        assert!(err.contains("2 points of dimension 2"), "{err}");
+
+        let mut bad = good.clone();
+        let last_value = bad.len() - 6;
+        bad[last_value] ^= 0x40;
+        std::fs::write(&path, &bad).unwrap();
+        let err = read_map_file(&path).unwrap_err().to_string();
+        assert!(err.contains("checksum mismatch"), "{err}");
+        assert!(err.contains("corrupted"), "{err}");
+
+        std::fs::write(&path, b"PK\x03\x04 definitely a zip file").unwrap();
+        let err = read_map_file(&path).unwrap_err().to_string();
+        assert!(
+            err.ends_with("not a vlem map file (wrong magic bytes)"),
+            "{err}"
+        );
+
+        let mut newer = good;
+        newer[8] = 9;
+        std::fs::write(&path, &newer).unwrap();
+        let err = read_map_file(&path).unwrap_err().to_string();
+        assert!(
+            err.contains("format version 9, this build of vlem reads version 1"),
+            "{err}"
+        );
+    }
+
+    #[test]
+    fn failed_write_keeps_the_old_file() {
+        let dir = tempfile::tempdir().unwrap();
+        let path = dir.path().join("map.vlem");
+        write_map_file(&path, &sample()).unwrap();
+        let mut broken = sample();
+        broken.embeddings.pop();
+        assert!(write_map_file(&path, &broken).is_err());
+        assert_eq!(read_map_file(&path).unwrap(), sample());
+    }
+}

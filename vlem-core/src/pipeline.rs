@@ -1,0 +1,419 @@
+//! The pipeline: tracking and embedding in two threads joined by a bounded queue (paper, Fig. 2).
+//!
+//! The tracking thread reads frames from the [`FrameSource`] and tracks every one of them, so the
+//! trajectory is complete. Tracked frames go through a bounded queue to the embedding stage
+//! (region proposer → encoder → map), which may run slower:
+//! - [`Mode::Offline`]: the tracking thread waits for room in the queue; every frame is embedded.
+//! - [`Mode::RealTime`]: frames are released at the sensor rate; a frame that finds the queue full
+//!   (the embedding stage is busy) is not embedded and is counted as skipped, as in the paper.
+//!
+//! Frames the tracker reports as lost are never integrated.
+
+use std::collections::BTreeMap;
+use std::sync::mpsc::{Receiver, SyncSender, TrySendError, sync_channel};
+use std::time::{Duration, Instant};
+
+use serde::Serialize;
+
+use crate::config::{Config, Mode, PipelineConfig};
+use crate::error::{CoreError, Result};
+use crate::registry::{BuildContext, Registry};
+use crate::traits::embedding_map::{EmbeddingMap, IntegrationStats, Observation};
+use crate::traits::encoder::Encoder;
+use crate::traits::frame_source::FrameSource;
+use crate::traits::region_proposer::RegionProposer;
+use crate::traits::tracker::{Tracker, TrackingState};
+use crate::types::{Frame, Pose};
+
+/// The built stages of a run.
+pub struct Pipeline {
+    tracker: Box<dyn Tracker>,
+    proposer: Option<Box<dyn RegionProposer>>,
+    encoder: Option<Box<dyn Encoder>>,
+    map: Option<Box<dyn EmbeddingMap>>,
+    config: PipelineConfig,
+}
+
+/// Something that happened, for progress displays.
+#[derive(Clone, Copy, Debug, PartialEq, Eq)]
+pub enum Progress {
+    /// Frame `index` was tracked (lost or not).
+    Tracked {
+        /// Frame index.
+        index: usize,
+    },
+    /// Frame `index` was integrated into the map.
+    Integrated {
+        /// Frame index.
+        index: usize,
+        /// Map size afterwards.
+        map_len: usize,
+    },
+    /// Frame `index` was skipped because the embedding stage was busy.
+    Skipped {
+        /// Frame index.
+        index: usize,
+    },
+}
+
+/// One entry of the estimated trajectory.
+#[derive(Clone, Debug, PartialEq)]
+pub struct TrajectoryEntry {
+    /// Frame index.
+    pub index: usize,
+    /// Frame timestamp (seconds, or the frame index where the dataset has none).
+    pub timestamp: f64,
+    /// Camera-to-world pose.
+    pub pose: Pose,
+    /// Whether tracking was lost at this frame.
+    pub lost: bool,
+}
+
+/// Mean wall time of one stage.
+#[derive(Clone, Copy, Debug, Default, PartialEq, Serialize)]
+pub struct StageTiming {
+    /// Calls timed.
+    pub count: usize,
+    /// Mean milliseconds per call.
+    pub mean_ms: f64,
+    total_ms: f64,
+}
+
+impl StageTiming {
+    fn add(&mut self, since: Instant) {
+        self.total_ms += since.elapsed().as_secs_f64() * 1e3;
+        self.count += 1;
+        self.mean_ms = self.total_ms / self.count as f64;
+    }
+}
+
+/// What a run did.
+#[derive(Clone, Debug, Default, Serialize)]
+pub struct RunReport {
+    /// Frames the source offered.
+    pub frames_total: usize,
+    /// Frames tracked (lost ones included).
+    pub frames_tracked: usize,
+    /// Frames where tracking was lost (not integrated).
+    pub frames_lost: usize,
+    /// Frames integrated into the map.
+    pub frames_processed: usize,
+    /// Frames skipped in real-time mode because the embedding stage was busy.
+    pub frames_skipped: usize,
+    /// Mean milliseconds per stage: `load`, `track`, `propose`, `encode`, `integrate`.
+    pub stage_ms: BTreeMap<&'static str, StageTiming>,
+    /// Wall time of the whole run in seconds.
+    pub wall_seconds: f64,
+    /// The trajectory, one entry per tracked frame.
+    #[serde(skip)]
+    pub trajectory: Vec<TrajectoryEntry>,
+}
+
+struct Tracked {
+    frame: Frame,
+    pose: Pose,
+}
+
+#[derive(Default)]
+struct TrackingOutcome {
+    trajectory: Vec<TrajectoryEntry>,
+    lost: usize,
+    skipped: usize,
+    load: StageTiming,
+    track: StageTiming,
+}
+
+#[derive(Default)]
+struct EmbeddingOutcome {
+    processed: usize,
+    propose: StageTiming,
+    encode: StageTiming,
+    integrate: StageTiming,
+}
+
+impl Pipeline {
+    /// Builds every stage the config names, through the registry.
+    ///
+    /// # Errors
+    /// Unknown implementation names, invalid parameters, an encoder that needs regions without a
+    /// `[proposer]`, or an encoder and map that disagree on the embedding dimension.
+    pub fn from_config(config: &Config, ctx: &BuildContext) -> Result<Self> {
+        let registry = Registry::global()?;
+        let tracker = registry.build_tracker(&config.tracker, ctx)?;
+        let encoder = config
+            .encoder
+            .as_ref()
+            .map(|stage| registry.build_encoder(stage, ctx))
+            .transpose()?;
+        // A proposer only runs for encoders that embed regions; `Pipeline::new` reports a missing one.
+        let proposer = match (&encoder, &config.proposer) {
+            (Some(e), Some(stage)) if e.needs_regions() => {
+                Some(registry.build_proposer(stage, ctx)?)
+            }
+            _ => None,
+        };
+        let map_ctx = BuildContext {
+            embedding_dim: encoder.as_ref().map(|e| e.dim()),
+            ..ctx.clone()
+        };
+        let map = config
+            .map
+            .as_ref()
+            .map(|stage| registry.build_map(stage, &map_ctx))
+            .transpose()?;
+        Self::new(tracker, proposer, encoder, map, config.pipeline.clone())
+    }
+
+    /// Assembles a pipeline from stages built elsewhere.
+    ///
+    /// # Errors
+    /// [`CoreError::EmbeddingDimensionMismatch`] when the encoder's and the map's dimensions differ
+    /// (a map without an encoder must have dimension 0), [`CoreError::MissingStage`] for an encoder
+    /// that needs regions without a proposer, or a zero queue capacity.
+    pub fn new(
+        tracker: Box<dyn Tracker>,
+        proposer: Option<Box<dyn RegionProposer>>,
+        encoder: Option<Box<dyn Encoder>>,
+        map: Option<Box<dyn EmbeddingMap>>,
+        config: PipelineConfig,
+    ) -> Result<Self> {
+        if let Some(map) = &map {
+            let (encoder_name, encoder_dim) = match &encoder {
+                Some(e) => (e.name().to_owned(), e.dim()),
+                None => ("(none)".to_owned(), 0),
+            };
+            if map.dim() != encoder_dim {
+                return Err(CoreError::EmbeddingDimensionMismatch {
+                    encoder: encoder_name,
+                    encoder_dim,
+                    map: map.name().to_owned(),
+                    map_dim: map.dim(),
+                });
+            }
+        }
+        if let Some(e) = &encoder
+            && e.needs_regions()
+            && proposer.is_none()
+        {
+            return Err(CoreError::MissingStage {
+                message: format!(
+                    "the encoder `{}` embeds image regions: add a [proposer] section to the config",
+                    e.name()
+                ),
+            });
+        }
+        if config.queue_capacity == 0 {
+            return Err(CoreError::MissingStage {
+                message: "[pipeline] queue_capacity must be at least 1".into(),
+            });
+        }
+        Ok(Self {
+            tracker,
+            proposer,
+            encoder,
+            map,
+            config,
+        })
+    }
+
+    /// The map, if the config has one.
+    pub fn map(&self) -> Option<&dyn EmbeddingMap> {
+        self.map.as_deref()
+    }
+
+    /// The encoder, if the config has one.
+    pub fn encoder(&self) -> Option<&dyn Encoder> {
+        self.encoder.as_deref()
+    }
+
+    /// The tracker.
+    pub fn tracker(&self) -> &dyn Tracker {
+        self.tracker.as_ref()
+    }
+
+    /// Runs the pipeline over the first `frames` frames of `source` (all of them for `None`).
+    ///
+    /// # Errors
+    /// The first error of any stage; the run stops there. A tracker that reads dataset poses on a
+    /// source without poses fails before the first frame.
+    pub fn run(
+        &mut self,
+        source: &mut dyn FrameSource,
+        frames: Option<usize>,
+        progress: &(dyn Fn(Progress) + Sync),
+    ) -> Result<RunReport> {
+        if self.tracker.needs_dataset_poses() && !source.has_poses() {
+            return Err(CoreError::MissingStage {
+                message: format!(
+                    "the tracker `{}` reads poses from the dataset, but {} has no trajectory; \
+                     add one or configure a tracker that estimates poses",
+                    self.tracker.name(),
+                    source.describe()
+                ),
+            });
+        }
+        let total = frames.map_or(source.len(), |n| n.min(source.len()));
+        let start = Instant::now();
+        let (sender, receiver) = sync_channel::<Tracked>(self.config.queue_capacity);
+        let config = self.config.clone();
+        let integrate = self.map.is_some();
+        let tracker = &mut self.tracker;
+        let proposer = self.proposer.as_deref();
+        let encoder = self.encoder.as_deref();
+        let map = self.map.as_mut();
+        let (tracking, embedding) = std::thread::scope(|scope| {
+            let tracking = scope.spawn(move || {
+                track_frames(
+                    tracker.as_mut(),
+                    source,
+                    total,
+                    &config,
+                    integrate,
+                    sender,
+                    progress,
+                )
+            });
+            let embedding = embed_frames(receiver, proposer, encoder, map, progress);
+            let tracking = tracking.join().map_err(|_| CoreError::Worker {
+                reason: "the tracking thread panicked".into(),
+            });
+            (tracking, embedding)
+        });
+        // An embedding error makes the tracking thread stop early; report the cause, not that.
+        let embedding = embedding?;
+        let tracking = tracking??;
+        let mut stage_ms = BTreeMap::new();
+        stage_ms.insert("load", tracking.load);
+        stage_ms.insert("track", tracking.track);
+        stage_ms.insert("propose", embedding.propose);
+        stage_ms.insert("encode", embedding.encode);
+        stage_ms.insert("integrate", embedding.integrate);
+        stage_ms.retain(|_, t| t.count > 0);
+        Ok(RunReport {
+            frames_total: total,
+            frames_tracked: tracking.trajectory.len(),
+            frames_lost: tracking.lost,
+            frames_processed: embedding.processed,
+            frames_skipped: tracking.skipped,
+            stage_ms,
+            wall_seconds: start.elapsed().as_secs_f64(),
+            trajectory: tracking.trajectory,
+        })
+    }
+}
+
+fn track_frames(
+    tracker: &mut dyn Tracker,
+    source: &mut dyn FrameSource,
+    total: usize,
+    config: &PipelineConfig,
+    integrate: bool,
+    sender: SyncSender<Tracked>,
+    progress: &(dyn Fn(Progress) + Sync),
+) -> Result<TrackingOutcome> {
+    let mut out = TrackingOutcome::default();
+    let started = Instant::now();
+    let frame_period = if config.frame_rate > 0.0 {
+        Duration::from_secs_f64(1.0 / config.frame_rate)
+    } else {
+        Duration::ZERO
+    };
+    for index in 0..total {
+        if config.mode == Mode::RealTime {
+            // Frames "arrive" at the sensor rate; never faster.
+            let due = frame_period.saturating_mul(index as u32);
+            if let Some(wait) = due.checked_sub(started.elapsed()) {
+                std::thread::sleep(wait);
+            }
+        }
+        let t = Instant::now();
+        let frame = source.frame(index)?;
+        out.load.add(t);
+        let t = Instant::now();
+        let tracked = tracker.track(&frame)?;
+        out.track.add(t);
+        let lost = matches!(tracked.state, TrackingState::Lost { .. });
+        out.trajectory.push(TrajectoryEntry {
+            index: frame.index,
+            timestamp: frame.timestamp,
+            pose: tracked.pose,
+            lost,
+        });
+        progress(Progress::Tracked { index: frame.index });
+        if lost {
+            out.lost += 1;
+            continue;
+        }
+        if !integrate {
+            continue;
+        }
+        let item = Tracked {
+            frame,
+            pose: tracked.pose,
+        };
+        match config.mode {
+            Mode::Offline => {
+                if sender.send(item).is_err() {
+                    break; // The embedding stage stopped with an error; it reports it.
+                }
+            }
+            Mode::RealTime => match sender.try_send(item) {
+                Ok(()) => {}
+                Err(TrySendError::Full(item)) => {
+                    out.skipped += 1;
+                    progress(Progress::Skipped {
+                        index: item.frame.index,
+                    });
+                }
+                Err(TrySendError::Disconnected(_)) => break,
+            },
+        }
+    }
+    Ok(out)
+}
+
+fn embed_frames(
+    receiver: Receiver<Tracked>,
+    proposer: Option<&dyn RegionProposer>,
+    encoder: Option<&dyn Encoder>,
+    mut map: Option<&mut Box<dyn EmbeddingMap>>,
+    progress: &(dyn Fn(Progress) + Sync),
+) -> Result<EmbeddingOutcome> {
+    let mut out = EmbeddingOutcome::default();
+    // Dropping the receiver on error (by returning) unblocks and stops the tracking thread.
+    for Tracked { frame, pose } in receiver {
+        let regions = match proposer {
+            Some(p) => {
+                let t = Instant::now();
+                let regions = p.propose(&frame.colour)?;
+                out.propose.add(t);
+                regions
+            }
+            None => Vec::new(),
+        };
+        let embeddings = match encoder {
+            Some(e) => {
+                let t = Instant::now();
+                let embeddings = e.encode_image(&frame.colour, &regions)?;
+                out.encode.add(t);
+                Some(embeddings)
+            }
+            None => None,
+        };
+        if let Some(map) = map.as_mut() {
+            let t = Instant::now();
+            let _: IntegrationStats = map.integrate(&Observation {
+                frame: &frame,
+                pose: &pose,
+                embeddings: embeddings.as_ref(),
+            })?;
+            out.integrate.add(t);
+            out.processed += 1;
+            progress(Progress::Integrated {
+                index: frame.index,
+                map_len: map.len(),
+            });
+        }
+    }
+    Ok(out)
+}

@@ -1,0 +1,83 @@
+//! `EmbeddingMap`: the 3D map of points (or voxels, or segments) with embeddings.
+//!
+//! Why it exists: comparing map representations is one of vlem's reasons to exist (the paper's
+//! point cloud against RayFronts' voxels and Open-Fusion's segments). A map owns its storage, its
+//! fusion rule and its memory budget; it answers queries and exports a [`MapSnapshot`] that the map
+//! file stores, so `vlem query` works the same on every map.
+
+use crate::embeddings::PixelEmbeddings;
+use crate::error::{CoreError, Result};
+use crate::mapfile::MapSnapshot;
+use crate::types::{Frame, Pose};
+
+/// One tracked frame and its embeddings, ready to integrate.
+#[derive(Clone, Copy, Debug)]
+pub struct Observation<'a> {
+    /// The RGB-D frame.
+    pub frame: &'a Frame,
+    /// Camera-to-world pose from the tracker.
+    pub pose: &'a Pose,
+    /// Pixel embeddings, `None` for a geometry-only pipeline.
+    pub embeddings: Option<&'a PixelEmbeddings>,
+}
+
+/// What one integration did.
+#[derive(Clone, Copy, Debug, Default, PartialEq, Eq)]
+pub struct IntegrationStats {
+    /// Points (pixels) of the frame that were used.
+    pub observed: usize,
+    /// Map elements whose embedding was fused with an observation.
+    pub fused: usize,
+    /// Map elements added.
+    pub inserted: usize,
+    /// Map elements removed by budget enforcement.
+    pub removed: usize,
+}
+
+/// A map of 3D elements that carry embeddings, integrated frame by frame.
+pub trait EmbeddingMap: Send + Sync {
+    /// The registered name.
+    fn name(&self) -> &'static str;
+
+    /// Embedding dimension (0 for a geometry-only map).
+    fn dim(&self) -> usize;
+
+    /// Integrates one observation.
+    ///
+    /// # Errors
+    /// Inconsistent inputs (e.g. embeddings of another dimension or image size).
+    fn integrate(&mut self, observation: &Observation<'_>) -> Result<IntegrationStats>;
+
+    /// Number of elements (points, voxels, ...).
+    fn len(&self) -> usize;
+
+    /// Whether the map is empty.
+    fn is_empty(&self) -> bool {
+        self.len() == 0
+    }
+
+    /// Bytes of map storage (positions, colours, embeddings and indices), for memory reports.
+    fn memory_bytes(&self) -> usize;
+
+    /// The normalised cosine similarity `(e_text . e + 1) / 2` of every element, into `out`
+    /// (resized to [`EmbeddingMap::len`]), in the order of [`EmbeddingMap::snapshot`].
+    ///
+    /// # Errors
+    /// [`CoreError::DimensionMismatch`] when `text` has the wrong length.
+    fn similarity(&self, text: &[f32], out: &mut Vec<f32>) -> Result<()>;
+
+    /// Every element as point, colour and embedding, for saving and querying.
+    fn snapshot(&self) -> MapSnapshot;
+
+    /// Replaces the map content with a saved snapshot (continue mapping from a file).
+    ///
+    /// # Errors
+    /// [`CoreError::Unsupported`] by default; mismatched snapshots otherwise.
+    fn restore(&mut self, snapshot: MapSnapshot) -> Result<()> {
+        let _ = snapshot;
+        Err(CoreError::Unsupported {
+            implementation: format!("map `{}`", self.name()),
+            capability: "restoring from a snapshot",
+        })
+    }
+}

@@ -1,0 +1,44 @@
+//! `Encoder`: vision-language embeddings for pixels and for text.
+//!
+//! Why it exists: the paper compares VLM backends (CLIP on segments, DINOv3 dino.txt and NARADIO on
+//! patches) under one pipeline; researchers add new ones. An encoder owns its model weights and
+//! produces [`PixelEmbeddings`] in whichever layout it computes natively (segments or patch grid),
+//! never a dense per-pixel tensor. The text side is a capability: an image-only encoder returns
+//! [`CoreError::Unsupported`] from [`Encoder::encode_text`].
+
+use crate::embeddings::PixelEmbeddings;
+use crate::error::{CoreError, Result};
+use crate::types::{Region, RgbImage};
+
+/// Maps images (and, where supported, text) into one embedding space of dimension [`Encoder::dim`].
+pub trait Encoder: Send + Sync {
+    /// The registered name.
+    fn name(&self) -> &'static str;
+
+    /// Embedding dimension of both sides.
+    fn dim(&self) -> usize;
+
+    /// Whether [`Encoder::encode_image`] needs regions from a [`crate::RegionProposer`].
+    fn needs_regions(&self) -> bool {
+        false
+    }
+
+    /// Embeds an image. `regions` is empty unless [`Encoder::needs_regions`] is true.
+    ///
+    /// # Errors
+    /// Model failures, or inconsistent inputs.
+    fn encode_image(&self, image: &RgbImage, regions: &[Region]) -> Result<PixelEmbeddings>;
+
+    /// Embeds a text query into a unit-norm vector of length [`Encoder::dim`].
+    ///
+    /// # Errors
+    /// [`CoreError::Unsupported`] for encoders without a text side (the default), or a message
+    /// saying why this text cannot be embedded.
+    fn encode_text(&self, text: &str) -> Result<Vec<f32>> {
+        let _ = text;
+        Err(CoreError::Unsupported {
+            implementation: format!("encoder `{}`", self.name()),
+            capability: "text encoding",
+        })
+    }
+}

@@ -1,0 +1,445 @@
+//! Plain data that flows through the pipeline: images, intrinsics, poses, frames, regions.
+//!
+//! Conventions (the same everywhere in vlem):
+//! - images are row-major, origin top-left, `u` = column, `v` = row;
+//! - depth is in metres; a depth of 0, a negative value or a non-finite value means "no measurement"
+//!   and is never back-projected;
+//! - a [`Pose`] maps camera coordinates to world (map) coordinates (camera-to-world), with the camera
+//!   looking along +z, x to the right and y down (the OpenCV / Open3D convention).
+
+use nalgebra::{Isometry3, Point3, Vector3};
+
+use crate::error::{CoreError, Result};
+
+/// Camera-to-world rigid transform.
+pub type Pose = Isometry3<f64>;
+
+/// An 8-bit RGB image, interleaved, row-major.
+#[derive(Clone, Debug, PartialEq)]
+pub struct RgbImage {
+    width: u32,
+    height: u32,
+    data: Vec<u8>,
+}
+
+impl RgbImage {
+    /// Wraps an interleaved RGB buffer of `width * height * 3` bytes.
+    ///
+    /// # Errors
+    /// [`CoreError::BufferSize`] when the buffer length does not match the size.
+    pub fn new(width: u32, height: u32, data: Vec<u8>) -> Result<Self> {
+        let expected = width as usize * height as usize * 3;
+        if data.len() != expected {
+            return Err(CoreError::BufferSize {
+                what: "RGB image",
+                width,
+                height,
+                expected,
+                actual: data.len(),
+            });
+        }
+        Ok(Self {
+            width,
+            height,
+            data,
+        })
+    }
+
+    /// An image filled with one colour.
+    pub fn filled(width: u32, height: u32, rgb: [u8; 3]) -> Self {
+        let data = rgb
+            .iter()
+            .copied()
+            .cycle()
+            .take(width as usize * height as usize * 3)
+            .collect();
+        Self {
+            width,
+            height,
+            data,
+        }
+    }
+
+    /// Width in pixels.
+    pub fn width(&self) -> u32 {
+        self.width
+    }
+
+    /// Height in pixels.
+    pub fn height(&self) -> u32 {
+        self.height
+    }
+
+    /// The colour at pixel `(u, v)`; `None` outside the image.
+    pub fn get(&self, u: u32, v: u32) -> Option<[u8; 3]> {
+        if u >= self.width || v >= self.height {
+            return None;
+        }
+        let i = (v as usize * self.width as usize + u as usize) * 3;
+        Some([self.data[i], self.data[i + 1], self.data[i + 2]])
+    }
+
+    /// The colour of the pixel with linear index `i = v * width + u` (caller keeps `i` in range).
+    #[inline]
+    pub fn at_index(&self, i: usize) -> [u8; 3] {
+        let i = i * 3;
+        [self.data[i], self.data[i + 1], self.data[i + 2]]
+    }
+
+    /// The raw interleaved bytes.
+    pub fn as_raw(&self) -> &[u8] {
+        &self.data
+    }
+
+    /// Gives the buffer back.
+    pub fn into_raw(self) -> Vec<u8> {
+        self.data
+    }
+}
+
+/// A depth image in metres. Invalid pixels are 0 or NaN (see the module docs).
+#[derive(Clone, Debug, PartialEq)]
+pub struct DepthImage {
+    width: u32,
+    height: u32,
+    data: Vec<f32>,
+}
+
+impl DepthImage {
+    /// Wraps a row-major buffer of `width * height` depths in metres.
+    ///
+    /// # Errors
+    /// [`CoreError::BufferSize`] when the buffer length does not match the size.
+    pub fn new(width: u32, height: u32, data: Vec<f32>) -> Result<Self> {
+        let expected = width as usize * height as usize;
+        if data.len() != expected {
+            return Err(CoreError::BufferSize {
+                what: "depth image",
+                width,
+                height,
+                expected,
+                actual: data.len(),
+            });
+        }
+        Ok(Self {
+            width,
+            height,
+            data,
+        })
+    }
+
+    /// Converts raw sensor units (e.g. 16-bit millimetres) with `scale` units per metre.
+    pub fn from_raw_u16(width: u32, height: u32, raw: &[u16], scale: f32) -> Result<Self> {
+        let data = raw
+            .iter()
+            .map(|&d| if d == 0 { 0.0 } else { f32::from(d) / scale })
+            .collect();
+        Self::new(width, height, data)
+    }
+
+    /// Width in pixels.
+    pub fn width(&self) -> u32 {
+        self.width
+    }
+
+    /// Height in pixels.
+    pub fn height(&self) -> u32 {
+        self.height
+    }
+
+    /// The valid depth at `(u, v)` in metres, `None` for invalid pixels and outside the image.
+    pub fn get(&self, u: u32, v: u32) -> Option<f32> {
+        if u >= self.width || v >= self.height {
+            return None;
+        }
+        valid_depth(self.data[v as usize * self.width as usize + u as usize])
+    }
+
+    /// The raw values (including invalid ones).
+    pub fn as_raw(&self) -> &[f32] {
+        &self.data
+    }
+
+    /// Number of pixels holding a valid depth.
+    pub fn valid_count(&self) -> usize {
+        self.data
+            .iter()
+            .filter(|d| valid_depth(**d).is_some())
+            .count()
+    }
+}
+
+/// `Some(d)` when `d` is a usable depth measurement (finite and > 0).
+#[inline]
+pub fn valid_depth(d: f32) -> Option<f32> {
+    (d.is_finite() && d > 0.0).then_some(d)
+}
+
+/// Pinhole camera intrinsics for an image of `width` x `height` pixels.
+#[derive(Clone, Copy, Debug, PartialEq, serde::Serialize, serde::Deserialize)]
+pub struct Intrinsics {
+    /// Image width in pixels.
+    pub width: u32,
+    /// Image height in pixels.
+    pub height: u32,
+    /// Focal length along x, in pixels.
+    pub fx: f64,
+    /// Focal length along y, in pixels.
+    pub fy: f64,
+    /// Principal point x, in pixels.
+    pub cx: f64,
+    /// Principal point y, in pixels.
+    pub cy: f64,
+}
+
+impl Intrinsics {
+    /// Validated intrinsics.
+    ///
+    /// # Errors
+    /// [`CoreError::InvalidIntrinsics`] for an empty image, non-positive or non-finite focal
+    /// lengths, or a principal point outside the image.
+    pub fn new(width: u32, height: u32, fx: f64, fy: f64, cx: f64, cy: f64) -> Result<Self> {
+        let k = Self {
+            width,
+            height,
+            fx,
+            fy,
+            cx,
+            cy,
+        };
+        k.validate()?;
+        Ok(k)
+    }
+
+    /// Checks the invariants that [`Intrinsics::new`] enforces (for values built by hand or
+    /// deserialised).
+    ///
+    /// # Errors
+    /// See [`Intrinsics::new`].
+    pub fn validate(&self) -> Result<()> {
+        let fail = |reason: String| Err(CoreError::InvalidIntrinsics { reason });
+        if self.width == 0 || self.height == 0 {
+            return fail(format!(
+                "image size {}x{} is empty",
+                self.width, self.height
+            ));
+        }
+        if !(self.fx.is_finite() && self.fy.is_finite() && self.fx > 0.0 && self.fy > 0.0) {
+            return fail(format!(
+                "focal lengths must be positive, got fx = {}, fy = {}",
+                self.fx, self.fy
+            ));
+        }
+        let inside = |c: f64, size: u32| c.is_finite() && c >= 0.0 && c <= f64::from(size);
+        if !inside(self.cx, self.width) || !inside(self.cy, self.height) {
+            return fail(format!(
+                "principal point ({}, {}) lies outside the {}x{} image",
+                self.cx, self.cy, self.width, self.height
+            ));
+        }
+        Ok(())
+    }
+
+    /// The same camera for an image resampled to `width` x `height`.
+    pub fn scaled_to(&self, width: u32, height: u32) -> Self {
+        let sx = f64::from(width) / f64::from(self.width);
+        let sy = f64::from(height) / f64::from(self.height);
+        Self {
+            width,
+            height,
+            fx: self.fx * sx,
+            fy: self.fy * sy,
+            // Pixel centres: (c + 0.5) scales, not c.
+            cx: (self.cx + 0.5) * sx - 0.5,
+            cy: (self.cy + 0.5) * sy - 0.5,
+        }
+    }
+
+    /// Back-projects pixel `(u, v)` at depth `z` (metres) into the camera frame.
+    #[inline]
+    pub fn back_project(&self, u: f64, v: f64, z: f64) -> Point3<f64> {
+        Point3::new((u - self.cx) * z / self.fx, (v - self.cy) * z / self.fy, z)
+    }
+
+    /// Projects a camera-frame point to continuous pixel coordinates; `None` behind the camera.
+    #[inline]
+    pub fn project(&self, p: &Point3<f64>) -> Option<(f64, f64)> {
+        (p.z > 0.0).then(|| (self.fx * p.x / p.z + self.cx, self.fy * p.y / p.z + self.cy))
+    }
+}
+
+/// One RGB-D observation.
+#[derive(Clone, Debug)]
+pub struct Frame {
+    /// Position in the sequence (0-based, after any stride).
+    pub index: usize,
+    /// Sensor timestamp in seconds; datasets without timestamps use the frame index.
+    pub timestamp: f64,
+    /// Colour image, same size as `depth`.
+    pub colour: RgbImage,
+    /// Depth in metres.
+    pub depth: DepthImage,
+    /// Intrinsics of both images (they are registered).
+    pub intrinsics: Intrinsics,
+    /// Camera-to-world pose, where the dataset has one.
+    pub pose: Option<Pose>,
+}
+
+impl Frame {
+    /// A validated frame: colour, depth and intrinsics agree in size and the pose is finite.
+    ///
+    /// # Errors
+    /// [`CoreError::SizeMismatch`], [`CoreError::InvalidIntrinsics`] or [`CoreError::NonFinitePose`].
+    pub fn new(
+        index: usize,
+        timestamp: f64,
+        colour: RgbImage,
+        depth: DepthImage,
+        intrinsics: Intrinsics,
+        pose: Option<Pose>,
+    ) -> Result<Self> {
+        intrinsics.validate()?;
+        let (w, h) = (intrinsics.width, intrinsics.height);
+        let check = |what, aw, ah| {
+            if (aw, ah) != (w, h) {
+                Err(CoreError::SizeMismatch {
+                    frame: index,
+                    what,
+                    expected_width: w,
+                    expected_height: h,
+                    actual_width: aw,
+                    actual_height: ah,
+                })
+            } else {
+                Ok(())
+            }
+        };
+        check("colour image", colour.width(), colour.height())?;
+        check("depth image", depth.width(), depth.height())?;
+        if let Some(pose) = &pose
+            && !pose_is_finite(pose)
+        {
+            return Err(CoreError::NonFinitePose { frame: index });
+        }
+        Ok(Self {
+            index,
+            timestamp,
+            colour,
+            depth,
+            intrinsics,
+            pose,
+        })
+    }
+}
+
+/// True when every entry of the pose is finite and the rotation is a unit quaternion.
+pub fn pose_is_finite(pose: &Pose) -> bool {
+    let t: &Vector3<f64> = &pose.translation.vector;
+    let q = pose.rotation.quaternion();
+    t.iter().all(|x| x.is_finite())
+        && q.coords.iter().all(|x| x.is_finite())
+        && (q.norm() - 1.0).abs() < 1e-6
+}
+
+/// An axis-aligned pixel rectangle.
+#[derive(Clone, Copy, Debug, PartialEq, Eq)]
+pub struct PixelRect {
+    /// Left column.
+    pub x: u32,
+    /// Top row.
+    pub y: u32,
+    /// Width in pixels (> 0).
+    pub width: u32,
+    /// Height in pixels (> 0).
+    pub height: u32,
+}
+
+/// An image region from a [`crate::RegionProposer`]: a bounding box and a binary mask inside it.
+#[derive(Clone, Debug, PartialEq)]
+pub struct Region {
+    /// Bounding box in image pixels.
+    pub bbox: PixelRect,
+    /// Row-major `bbox.width * bbox.height` foreground flags.
+    pub mask: Vec<bool>,
+}
+
+impl Region {
+    /// Number of foreground pixels.
+    pub fn area(&self) -> usize {
+        self.mask.iter().filter(|m| **m).count()
+    }
+
+    /// Whether image pixel `(u, v)` is foreground.
+    pub fn contains(&self, u: u32, v: u32) -> bool {
+        let b = &self.bbox;
+        if u < b.x || v < b.y || u >= b.x + b.width || v >= b.y + b.height {
+            return false;
+        }
+        self.mask[((v - b.y) * b.width + (u - b.x)) as usize]
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn intrinsics_reject_bad_values_with_reasons() {
+        let err = Intrinsics::new(640, 480, 0.0, 525.0, 319.5, 239.5).unwrap_err();
+        assert!(
+            err.to_string().contains("focal lengths must be positive"),
+            "{err}"
+        );
+        let err = Intrinsics::new(640, 480, 525.0, 525.0, 700.0, 239.5).unwrap_err();
+        assert!(
+            err.to_string()
+                .contains("principal point (700, 239.5) lies outside"),
+            "{err}"
+        );
+        let err = Intrinsics::new(0, 480, 525.0, 525.0, 0.0, 0.0).unwrap_err();
+        assert!(err.to_string().contains("empty"), "{err}");
+        assert!(Intrinsics::new(640, 480, 525.0, 525.0, 319.5, 239.5).is_ok());
+    }
+
+    #[test]
+    fn back_projection_inverts_projection() {
+        let k = Intrinsics::new(640, 480, 525.0, 520.0, 319.5, 239.5).unwrap();
+        let p = k.back_project(100.0, 400.0, 2.5);
+        let (u, v) = k.project(&p).unwrap();
+        assert!((u - 100.0).abs() < 1e-9 && (v - 400.0).abs() < 1e-9);
+        assert!(k.project(&Point3::new(0.0, 0.0, -1.0)).is_none());
+    }
+
+    #[test]
+    fn scaled_intrinsics_keep_pixel_centres() {
+        let k = Intrinsics::new(1296, 968, 1170.0, 1170.0, 647.5, 483.5).unwrap();
+        let s = k.scaled_to(648, 484);
+        assert!((s.fx - 585.0).abs() < 1e-9);
+        assert!((s.cx - 323.5).abs() < 1e-9);
+    }
+
+    #[test]
+    fn depth_treats_zero_nan_and_negative_as_invalid() {
+        let d = DepthImage::new(4, 1, vec![0.0, f32::NAN, -1.0, 1.5]).unwrap();
+        assert_eq!(d.get(0, 0), None);
+        assert_eq!(d.get(1, 0), None);
+        assert_eq!(d.get(2, 0), None);
+        assert_eq!(d.get(3, 0), Some(1.5));
+        assert_eq!(d.valid_count(), 1);
+        assert!(DepthImage::new(4, 2, vec![0.0; 7]).is_err());
+    }
+
+    #[test]
+    fn frame_rejects_size_mismatch_and_nan_pose() {
+        let k = Intrinsics::new(4, 2, 2.0, 2.0, 2.0, 1.0).unwrap();
+        let colour = RgbImage::filled(4, 2, [1, 2, 3]);
+        let depth = DepthImage::new(3, 2, vec![1.0; 6]).unwrap();
+        let err = Frame::new(7, 0.0, colour.clone(), depth, k, None).unwrap_err();
+        assert_eq!(err.to_string(), "frame 7: depth image is 3x2, expected 4x2");
+        let depth = DepthImage::new(4, 2, vec![1.0; 8]).unwrap();
+        let mut pose = Pose::identity();
+        pose.translation.vector.x = f64::NAN;
+        let err = Frame::new(3, 0.0, colour, depth, k, Some(pose)).unwrap_err();
+        assert_eq!(err.to_string(), "frame 3: pose is not finite");
+    }
+}

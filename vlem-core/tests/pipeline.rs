@@ -1,0 +1,376 @@
+//! The two-thread pipeline with small fake stages: offline and real-time behaviour, lost frames,
+//! error propagation, and the start-up checks.
+#![allow(
+    clippy::unwrap_used,
+    clippy::expect_used,
+    clippy::panic,
+    reason = "tests"
+)]
+
+use std::sync::Mutex;
+use std::time::Duration;
+
+use vlem_core::config::{Mode, PipelineConfig};
+use vlem_core::pipeline::{Pipeline, Progress};
+use vlem_core::{
+    CoreError, DepthImage, EmbeddingMap, Encoder, Frame, FrameSource, IntegrationStats, Intrinsics,
+    MapSnapshot, Observation, PixelEmbeddings, Pose, Region, RgbImage, TrackedPose, Tracker,
+    TrackingState,
+};
+
+struct Planes {
+    frames: usize,
+    poses: bool,
+}
+
+impl FrameSource for Planes {
+    fn describe(&self) -> String {
+        "test planes".into()
+    }
+    fn len(&self) -> usize {
+        self.frames
+    }
+    fn intrinsics(&self) -> Intrinsics {
+        Intrinsics::new(8, 6, 10.0, 10.0, 3.5, 2.5).unwrap()
+    }
+    fn has_poses(&self) -> bool {
+        self.poses
+    }
+    fn frame(&mut self, index: usize) -> vlem_core::Result<Frame> {
+        Frame::new(
+            index,
+            index as f64 * 0.5,
+            RgbImage::filled(8, 6, [1, 2, 3]),
+            DepthImage::new(8, 6, vec![1.0; 48])?,
+            self.intrinsics(),
+            self.poses
+                .then(|| Pose::translation(index as f64, 0.0, 0.0)),
+        )
+    }
+}
+
+/// Tracks every frame at the origin; loses every `lose_every`-th frame (0: never).
+struct Still {
+    lose_every: usize,
+    needs_poses: bool,
+}
+
+impl Tracker for Still {
+    fn name(&self) -> &'static str {
+        "still"
+    }
+    fn needs_dataset_poses(&self) -> bool {
+        self.needs_poses
+    }
+    fn track(&mut self, frame: &Frame) -> vlem_core::Result<TrackedPose> {
+        let lost = self.lose_every > 0 && frame.index % self.lose_every == 1;
+        Ok(TrackedPose {
+            pose: frame.pose.unwrap_or_else(Pose::identity),
+            state: if lost {
+                TrackingState::Lost {
+                    reason: "test".into(),
+                }
+            } else {
+                TrackingState::Tracking
+            },
+        })
+    }
+}
+
+/// A 2-d encoder that can be slow, fail at a frame, or need regions.
+struct Fake {
+    delay: Duration,
+    fail_at_call: Option<usize>,
+    calls: Mutex<usize>,
+    needs_regions: bool,
+}
+
+impl Fake {
+    fn new() -> Self {
+        Self {
+            delay: Duration::ZERO,
+            fail_at_call: None,
+            calls: Mutex::new(0),
+            needs_regions: false,
+        }
+    }
+}
+
+impl Encoder for Fake {
+    fn name(&self) -> &'static str {
+        "fake"
+    }
+    fn dim(&self) -> usize {
+        2
+    }
+    fn needs_regions(&self) -> bool {
+        self.needs_regions
+    }
+    fn encode_image(&self, image: &RgbImage, _: &[Region]) -> vlem_core::Result<PixelEmbeddings> {
+        let mut calls = self.calls.lock().unwrap();
+        if Some(*calls) == self.fail_at_call {
+            return Err(CoreError::InvalidEmbeddings {
+                reason: "fake encoder failure".into(),
+            });
+        }
+        *calls += 1;
+        std::thread::sleep(self.delay);
+        let n = (image.width() * image.height()) as usize;
+        PixelEmbeddings::from_segments(image.width(), image.height(), 2, vec![0; n], vec![1.0, 0.0])
+    }
+}
+
+/// Counts integrated frames and remembers their poses.
+#[derive(Default)]
+struct Recorder {
+    dim: usize,
+    poses: Vec<Pose>,
+}
+
+impl EmbeddingMap for Recorder {
+    fn name(&self) -> &'static str {
+        "recorder"
+    }
+    fn dim(&self) -> usize {
+        self.dim
+    }
+    fn integrate(&mut self, obs: &Observation<'_>) -> vlem_core::Result<IntegrationStats> {
+        self.poses.push(*obs.pose);
+        Ok(IntegrationStats::default())
+    }
+    fn len(&self) -> usize {
+        self.poses.len()
+    }
+    fn memory_bytes(&self) -> usize {
+        0
+    }
+    fn similarity(&self, _: &[f32], out: &mut Vec<f32>) -> vlem_core::Result<()> {
+        out.clear();
+        Ok(())
+    }
+    fn snapshot(&self) -> MapSnapshot {
+        MapSnapshot::default()
+    }
+}
+
+fn still() -> Box<dyn Tracker> {
+    Box::new(Still {
+        lose_every: 0,
+        needs_poses: false,
+    })
+}
+
+fn recorder(dim: usize) -> Box<dyn EmbeddingMap> {
+    Box::new(Recorder {
+        dim,
+        ..Recorder::default()
+    })
+}
+
+fn no_progress(_: Progress) {}
+
+#[test]
+fn offline_mode_integrates_every_frame_in_order() {
+    let mut p = Pipeline::new(
+        still(),
+        None,
+        Some(Box::new(Fake::new())),
+        Some(recorder(2)),
+        PipelineConfig::default(),
+    )
+    .unwrap();
+    let mut source = Planes {
+        frames: 12,
+        poses: true,
+    };
+    let report = p.run(&mut source, None, &no_progress).unwrap();
+    assert_eq!(report.frames_total, 12);
+    assert_eq!(report.frames_tracked, 12);
+    assert_eq!(report.frames_processed, 12);
+    assert_eq!(report.frames_skipped, 0);
+    assert_eq!(report.trajectory.len(), 12);
+    assert_eq!(report.trajectory[3].timestamp, 1.5);
+    assert_eq!(p.map().unwrap().len(), 12);
+    for stage in ["load", "track", "encode", "integrate"] {
+        assert_eq!(report.stage_ms[stage].count, 12, "{stage}");
+    }
+    assert!(!report.stage_ms.contains_key("propose"));
+    // A frame limit stops early.
+    let report = p.run(&mut source, Some(5), &no_progress).unwrap();
+    assert_eq!((report.frames_total, report.frames_processed), (5, 5));
+}
+
+#[test]
+fn real_time_mode_skips_frames_while_the_encoder_is_busy() {
+    let slow = Fake {
+        delay: Duration::from_millis(150),
+        ..Fake::new()
+    };
+    let config = PipelineConfig {
+        mode: Mode::RealTime,
+        queue_capacity: 1,
+        frame_rate: 200.0,
+    };
+    let mut p = Pipeline::new(
+        still(),
+        None,
+        Some(Box::new(slow)),
+        Some(recorder(2)),
+        config,
+    )
+    .unwrap();
+    let skipped = Mutex::new(0usize);
+    let progress = |e: Progress| {
+        if let Progress::Skipped { .. } = e {
+            *skipped.lock().unwrap() += 1;
+        }
+    };
+    let mut source = Planes {
+        frames: 10,
+        poses: false,
+    };
+    let report = p.run(&mut source, None, &progress).unwrap();
+    // 10 frames arrive within 50 ms; each embedding takes 150 ms.
+    assert_eq!(report.frames_tracked, 10, "tracking never skips");
+    assert!(report.frames_skipped > 0, "nothing skipped: {report:?}");
+    assert_eq!(report.frames_processed + report.frames_skipped, 10);
+    assert_eq!(*skipped.lock().unwrap(), report.frames_skipped);
+}
+
+#[test]
+fn lost_frames_are_tracked_but_never_integrated() {
+    let tracker = Box::new(Still {
+        lose_every: 2,
+        needs_poses: false,
+    });
+    let mut p = Pipeline::new(
+        tracker,
+        None,
+        Some(Box::new(Fake::new())),
+        Some(recorder(2)),
+        PipelineConfig::default(),
+    )
+    .unwrap();
+    let report = p
+        .run(
+            &mut Planes {
+                frames: 10,
+                poses: false,
+            },
+            None,
+            &no_progress,
+        )
+        .unwrap();
+    assert_eq!(report.frames_lost, 5);
+    assert_eq!(report.frames_processed, 5);
+    assert_eq!(report.trajectory.iter().filter(|t| t.lost).count(), 5);
+}
+
+#[test]
+fn an_encoder_error_stops_the_run_and_is_reported() {
+    let failing = Fake {
+        fail_at_call: Some(3),
+        ..Fake::new()
+    };
+    let mut p = Pipeline::new(
+        still(),
+        None,
+        Some(Box::new(failing)),
+        Some(recorder(2)),
+        PipelineConfig::default(),
+    )
+    .unwrap();
+    let err = p
+        .run(
+            &mut Planes {
+                frames: 1000,
+                poses: false,
+            },
+            None,
+            &no_progress,
+        )
+        .unwrap_err();
+    assert_eq!(
+        err.to_string(),
+        "invalid pixel embeddings: fake encoder failure"
+    );
+    assert_eq!(p.map().unwrap().len(), 3);
+}
+
+#[test]
+fn geometry_only_pipelines_run_without_an_encoder() {
+    let mut p = Pipeline::new(
+        still(),
+        None,
+        None,
+        Some(recorder(0)),
+        PipelineConfig::default(),
+    )
+    .unwrap();
+    let report = p
+        .run(
+            &mut Planes {
+                frames: 4,
+                poses: false,
+            },
+            None,
+            &no_progress,
+        )
+        .unwrap();
+    assert_eq!(report.frames_processed, 4);
+}
+
+#[test]
+fn start_up_checks_name_the_problem() {
+    let err = Pipeline::new(
+        still(),
+        None,
+        Some(Box::new(Fake::new())),
+        Some(recorder(512)),
+        PipelineConfig::default(),
+    )
+    .err()
+    .unwrap();
+    assert_eq!(
+        err.to_string(),
+        "the encoder `fake` produces 2-d embeddings but the map `recorder` stores 512-d embeddings; \
+         set [map] dim = 2 or remove it"
+    );
+    let regions = Fake {
+        needs_regions: true,
+        ..Fake::new()
+    };
+    let err = Pipeline::new(
+        still(),
+        None,
+        Some(Box::new(regions)),
+        Some(recorder(2)),
+        PipelineConfig::default(),
+    )
+    .err()
+    .unwrap();
+    assert_eq!(
+        err.to_string(),
+        "the encoder `fake` embeds image regions: add a [proposer] section to the config"
+    );
+    let needs_poses = Box::new(Still {
+        lose_every: 0,
+        needs_poses: true,
+    });
+    let mut p = Pipeline::new(needs_poses, None, None, None, PipelineConfig::default()).unwrap();
+    let err = p
+        .run(
+            &mut Planes {
+                frames: 2,
+                poses: false,
+            },
+            None,
+            &no_progress,
+        )
+        .unwrap_err();
+    assert_eq!(
+        err.to_string(),
+        "the tracker `still` reads poses from the dataset, but test planes has no trajectory; \
+         add one or configure a tracker that estimates poses"
+    );
+}
