@@ -1,0 +1,155 @@
+//! Benchmark of the point-cloud map's fusion step and of text queries (a bench binary, not a test).
+//!
+//! `cargo bench -p vlem-maps --bench fusion` fuses one real 640x480 frame (the living-room frame 1,
+//! with 300 segments of random 512-d embeddings) into maps of 100k and 1M points that lie on the
+//! surfaces the frame sees (points of frame 0, jittered by up to 3 mm), then times one text query
+//! over 1M x 512 embeddings. It prints a table of medians; BENCHMARKS.md records the numbers.
+#![allow(
+    clippy::unwrap_used,
+    clippy::expect_used,
+    clippy::panic,
+    reason = "bench binary"
+)]
+
+use std::path::Path;
+use std::time::Instant;
+
+use rand::rngs::StdRng;
+use rand::{Rng, SeedableRng};
+use vlem_core::config::DatasetConfig;
+use vlem_core::{EmbeddingMap, MapMetadata, MapSnapshot, Observation, PixelEmbeddings};
+use vlem_maps::point_cloud::{NAME, PointCloudConfig};
+
+const DIM: usize = 512;
+const RUNS: usize = 5;
+
+fn main() {
+    let data = Path::new(env!("CARGO_MANIFEST_DIR")).join("../data/living-room");
+    let mut source = vlem_datasets::open(&DatasetConfig::default(), &data).unwrap();
+    let frame0 = source.frame(0).unwrap();
+    let frame1 = source.frame(1).unwrap();
+    let mut rng = StdRng::seed_from_u64(7);
+    let embeddings = segment_embeddings(&mut rng, frame1.colour.width(), frame1.colour.height());
+    let surface = surface_points(&frame0);
+    println!(
+        "threads: {}; frame 1 has {} valid depth pixels; frame 0 surface {} points",
+        rayon::current_num_threads(),
+        frame1.depth.valid_count(),
+        surface.len()
+    );
+    println!("| map points | budget | median ms | min ms | fused | inserted | removed |");
+    println!("|---:|---|---:|---:|---:|---:|---:|");
+    for &n in &[100_000usize, 1_000_000] {
+        let snapshot = map_on_surface(&mut rng, &surface, n);
+        for (label, budget) in [("no downsampling", 4 * n), ("at budget N = map size", n)] {
+            let config = PointCloudConfig {
+                max_points: budget,
+                ..PointCloudConfig::default()
+            };
+            let mut times = Vec::new();
+            let mut stats = None;
+            for _ in 0..RUNS {
+                let mut map = config.build(Some(DIM)).unwrap();
+                map.restore(snapshot.clone()).unwrap();
+                let t = Instant::now();
+                let s = map
+                    .integrate(&Observation {
+                        frame: &frame1,
+                        pose: frame1.pose.as_ref().unwrap(),
+                        embeddings: Some(&embeddings),
+                    })
+                    .unwrap();
+                times.push(t.elapsed().as_secs_f64() * 1e3);
+                stats = Some(s);
+            }
+            let s = stats.unwrap();
+            times.sort_by(f64::total_cmp);
+            println!(
+                "| {n} | {label} | {:.0} | {:.0} | {} | {} | {} |",
+                times[RUNS / 2],
+                times[0],
+                s.fused,
+                s.inserted,
+                s.removed
+            );
+        }
+    }
+    query_benchmark(&mut rng);
+}
+
+/// 300 segments (32x32-pixel blocks) with random unit 512-d embeddings, like SAM + CLIP output.
+fn segment_embeddings(rng: &mut StdRng, w: u32, h: u32) -> PixelEmbeddings {
+    let blocks_x = w.div_ceil(32);
+    let index = (0..w * h)
+        .map(|i| (i % w) / 32 + (i / w) / 32 * blocks_x)
+        .collect();
+    let segments = (blocks_x * h.div_ceil(32)) as usize;
+    let table = random_unit_rows(rng, segments);
+    PixelEmbeddings::from_segments(w, h, DIM, index, table).unwrap()
+}
+
+fn random_unit_rows(rng: &mut StdRng, n: usize) -> Vec<f32> {
+    let mut v: Vec<f32> = (0..n * DIM)
+        .map(|_| rng.random_range(-1.0f32..1.0))
+        .collect();
+    for row in v.chunks_exact_mut(DIM) {
+        vlem_core::embeddings::normalise(row);
+    }
+    v
+}
+
+/// The world points of every valid pixel of `frame`.
+fn surface_points(frame: &vlem_core::Frame) -> Vec<[f32; 3]> {
+    let k = &frame.intrinsics;
+    let pose = frame.pose.unwrap();
+    let mut out = Vec::new();
+    for v in 0..k.height {
+        for u in 0..k.width {
+            if let Some(z) = frame.depth.get(u, v) {
+                let p = pose * k.back_project(f64::from(u), f64::from(v), f64::from(z));
+                out.push([p.x as f32, p.y as f32, p.z as f32]);
+            }
+        }
+    }
+    out
+}
+
+/// `n` points sampled from the surface with up to 3 mm jitter, random unit embeddings.
+fn map_on_surface(rng: &mut StdRng, surface: &[[f32; 3]], n: usize) -> MapSnapshot {
+    let positions = (0..n)
+        .map(|_| {
+            let p = surface[rng.random_range(0..surface.len())];
+            p.map(|x| x + rng.random_range(-0.003f32..0.003))
+        })
+        .collect();
+    MapSnapshot {
+        map_kind: NAME.into(),
+        dim: DIM,
+        positions,
+        colours: vec![[128, 128, 128]; n],
+        embeddings: random_unit_rows(rng, n),
+        metadata: MapMetadata::default(),
+    }
+}
+
+fn query_benchmark(rng: &mut StdRng) {
+    let n = 1_000_000;
+    let embeddings = random_unit_rows(rng, n);
+    let text = random_unit_rows(rng, 1);
+    let mut out = Vec::new();
+    let mut times = Vec::new();
+    for _ in 0..10 {
+        let t = Instant::now();
+        vlem_core::query::normalised_similarity(&embeddings, DIM, &text, &mut out).unwrap();
+        times.push(t.elapsed().as_secs_f64() * 1e3);
+    }
+    times.sort_by(f64::total_cmp);
+    let bytes = (n * DIM * 4) as f64;
+    println!(
+        "text query over {n} x {DIM} f32 ({:.0} MB): median {:.1} ms, min {:.1} ms ({:.1} GB/s)",
+        bytes / 1e6,
+        times[5],
+        times[0],
+        bytes / times[0] / 1e6
+    );
+}

@@ -1,0 +1,791 @@
+//! The paper's point-cloud embedding map (section "3D Embedding Integration").
+//!
+//! Per frame:
+//! 1. back-project every valid depth pixel that has an embedding into the map frame (the set `P`);
+//! 2. for every map point in the current view, find its nearest new point within `max_distance`
+//!    (a k-d tree over `P`), and fuse `e_M := (1 - w) e_P + w e_M`, renormalised (w = `map_weight`);
+//!    colours are fused with the same weights;
+//! 3. insert the new points that no map point chose as its nearest;
+//! 4. if the map holds more than `max_points` (the paper's `N_M`), downsample it to a uniform
+//!    density: points sharing a voxel are merged (mean position and colour, renormalised mean
+//!    embedding) and the voxel is grown until the budget holds. Voxels with one point are left as
+//!    they are, so sparse regions are not thinned further.
+//!
+//! Storage is struct-of-arrays: positions, colours and one contiguous `len x dim` embedding table,
+//! so a text query is a single pass over memory.
+
+use kiddo::{ImmutableKdTree, SquaredEuclidean};
+use nalgebra::{Matrix3, Vector3};
+use rayon::prelude::*;
+use serde::Deserialize;
+use vlem_core::embeddings::normalise;
+use vlem_core::{
+    BuildContext, CoreError, EmbeddingMap, IntegrationStats, MapMetadata, MapSnapshot, Observation,
+    PixelEmbeddings, StageKind, parse_params,
+};
+
+use crate::error::MapError;
+
+/// The registered name.
+pub const NAME: &str = "point-cloud";
+
+/// `[map] kind = "point-cloud"` parameters.
+#[derive(Clone, Debug, Deserialize, PartialEq)]
+#[serde(deny_unknown_fields)]
+pub struct PointCloudConfig {
+    /// Embedding dimension; defaults to the encoder's (0 without an encoder). If set, it must equal
+    /// the encoder's.
+    #[serde(default)]
+    pub dim: Option<usize>,
+    /// Point budget `N_M`; default 1,000,000.
+    #[serde(default = "default_max_points")]
+    pub max_points: usize,
+    /// Maximum correspondence distance in metres; default 0.02.
+    #[serde(default = "default_max_distance")]
+    pub max_distance: f32,
+    /// Weight `w` of the map embedding in the fusion; default 0.5 (the paper's value).
+    #[serde(default = "default_map_weight")]
+    pub map_weight: f32,
+    /// Depth beyond this (metres) is not integrated; default 10.
+    #[serde(default = "default_max_depth")]
+    pub max_depth: f32,
+    /// Use every n-th pixel in both directions; default 1 (every pixel, as in the paper).
+    #[serde(default = "default_pixel_stride")]
+    pub pixel_stride: u32,
+}
+
+fn default_max_points() -> usize {
+    1_000_000
+}
+fn default_max_distance() -> f32 {
+    0.02
+}
+fn default_map_weight() -> f32 {
+    0.5
+}
+fn default_max_depth() -> f32 {
+    10.0
+}
+fn default_pixel_stride() -> u32 {
+    1
+}
+
+impl Default for PointCloudConfig {
+    fn default() -> Self {
+        Self {
+            dim: None,
+            max_points: default_max_points(),
+            max_distance: default_max_distance(),
+            map_weight: default_map_weight(),
+            max_depth: default_max_depth(),
+            pixel_stride: default_pixel_stride(),
+        }
+    }
+}
+
+impl PointCloudConfig {
+    /// Builds the map for embeddings of dimension `encoder_dim` (`None` without an encoder).
+    ///
+    /// # Errors
+    /// [`MapError::InvalidParameter`] (wrapped as a stage error) for out-of-range values and for a
+    /// `dim` that disagrees with the encoder.
+    pub fn build(&self, encoder_dim: Option<usize>) -> Result<PointCloudMap, CoreError> {
+        let invalid = |name: &'static str, reason: &str| {
+            CoreError::stage(
+                StageKind::Map,
+                NAME,
+                MapError::InvalidParameter {
+                    name,
+                    reason: reason.to_owned(),
+                },
+            )
+        };
+        if self.max_points == 0 {
+            return Err(invalid("max_points", "must be at least 1"));
+        }
+        if !(self.max_distance.is_finite() && self.max_distance > 0.0) {
+            return Err(invalid(
+                "max_distance",
+                "must be a positive number of metres",
+            ));
+        }
+        if !(0.0..=1.0).contains(&self.map_weight) {
+            return Err(invalid("map_weight", "must lie in [0, 1]"));
+        }
+        if !(self.max_depth.is_finite() && self.max_depth > 0.0) {
+            return Err(invalid("max_depth", "must be a positive number of metres"));
+        }
+        if self.pixel_stride == 0 {
+            return Err(invalid("pixel_stride", "must be at least 1"));
+        }
+        let dim = match (self.dim, encoder_dim) {
+            (Some(map_dim), Some(encoder_dim)) if map_dim != encoder_dim => {
+                return Err(invalid(
+                    "dim",
+                    &format!(
+                        "is {map_dim} but the encoder produces {encoder_dim}-d embeddings: \
+                         remove `dim` or set it to {encoder_dim}"
+                    ),
+                ));
+            }
+            (Some(d), _) => d,
+            (None, d) => d.unwrap_or(0),
+        };
+        Ok(PointCloudMap::new(self.clone(), dim))
+    }
+}
+
+fn build(params: &toml::Table, ctx: &BuildContext) -> vlem_core::Result<Box<dyn EmbeddingMap>> {
+    let config: PointCloudConfig = parse_params(StageKind::Map, NAME, params)?;
+    Ok(Box::new(config.build(ctx.embedding_dim)?))
+}
+
+vlem_core::register_map!(
+    NAME,
+    "points with fused embeddings under a point budget (the VLEM paper's map)",
+    build
+);
+
+/// The point-cloud embedding map.
+#[derive(Clone, Debug)]
+pub struct PointCloudMap {
+    config: PointCloudConfig,
+    dim: usize,
+    positions: Vec<[f32; 3]>,
+    colours: Vec<[u8; 3]>,
+    embeddings: Vec<f32>,
+    /// Current downsampling resolution in metres (0 until the budget was first exceeded). It only
+    /// grows, so the density of the map never rises again once bounded.
+    voxel_size: f32,
+    frames: usize,
+}
+
+/// The new points of one frame, in the map frame.
+struct Observed {
+    positions: Vec<[f32; 3]>,
+    /// Linear pixel index `v * width + u` of each point.
+    pixels: Vec<u32>,
+    /// Mean depth, for the first downsampling resolution.
+    mean_depth: f32,
+}
+
+/// An f32 rigid transform for the hot loops (poses are f64 elsewhere).
+#[derive(Clone, Copy)]
+struct Rigid {
+    r: Matrix3<f32>,
+    t: Vector3<f32>,
+}
+
+impl Rigid {
+    fn from_pose(pose: &vlem_core::Pose) -> Self {
+        let m = pose.to_homogeneous().cast::<f32>();
+        Self {
+            r: m.fixed_view::<3, 3>(0, 0).into_owned(),
+            t: m.fixed_view::<3, 1>(0, 3).into_owned(),
+        }
+    }
+
+    #[inline]
+    fn apply(&self, p: [f32; 3]) -> [f32; 3] {
+        let q = self.r * Vector3::from(p) + self.t;
+        [q.x, q.y, q.z]
+    }
+}
+
+impl PointCloudMap {
+    /// An empty map (use [`PointCloudConfig::build`] for validated parameters).
+    pub fn new(config: PointCloudConfig, dim: usize) -> Self {
+        Self {
+            config,
+            dim,
+            positions: Vec::new(),
+            colours: Vec::new(),
+            embeddings: Vec::new(),
+            voxel_size: 0.0,
+            frames: 0,
+        }
+    }
+
+    /// Positions of all points.
+    pub fn positions(&self) -> &[[f32; 3]] {
+        &self.positions
+    }
+
+    /// The `len x dim` embedding table.
+    pub fn embeddings(&self) -> &[f32] {
+        &self.embeddings
+    }
+
+    /// The current downsampling voxel size (0 while under budget so far).
+    pub fn voxel_size(&self) -> f32 {
+        self.voxel_size
+    }
+
+    fn check(&self, obs: &Observation<'_>) -> Result<(), MapError> {
+        let frame = obs.frame;
+        match (self.dim, obs.embeddings) {
+            (0, None) => Ok(()),
+            (0, Some(e)) => Err(MapError::UnexpectedEmbeddings { dim: e.dim() }),
+            (d, None) => Err(MapError::MissingEmbeddings { dim: d }),
+            (d, Some(e)) if e.dim() != d => Err(MapError::Dimension {
+                expected: d,
+                actual: e.dim(),
+            }),
+            (_, Some(e))
+                if (e.width(), e.height()) != (frame.depth.width(), frame.depth.height()) =>
+            {
+                Err(MapError::EmbeddingSize {
+                    frame: frame.index,
+                    embeddings: (e.width(), e.height()),
+                    depth: (frame.depth.width(), frame.depth.height()),
+                })
+            }
+            _ => Ok(()),
+        }
+    }
+
+    fn observe(&self, obs: &Observation<'_>) -> Observed {
+        let frame = obs.frame;
+        let k = &frame.intrinsics;
+        let (w, h) = (frame.depth.width(), frame.depth.height());
+        let to_map = Rigid::from_pose(obs.pose);
+        let (fx, fy, cx, cy) = (k.fx as f32, k.fy as f32, k.cx as f32, k.cy as f32);
+        let max_depth = self.config.max_depth;
+        let depth = frame.depth.as_raw();
+        let stride = self.config.pixel_stride as usize;
+        let points: Vec<([f32; 3], u32, f32)> = (0..h as usize)
+            .into_par_iter()
+            .step_by(stride)
+            .flat_map_iter(|v| {
+                (0..w as usize).step_by(stride).filter_map(move |u| {
+                    let pixel = v * w as usize + u;
+                    let z = vlem_core::types::valid_depth(depth[pixel])?;
+                    if z > max_depth {
+                        return None;
+                    }
+                    if let Some(e) = obs.embeddings
+                        && !e.has_embedding(u as u32, v as u32)
+                    {
+                        return None;
+                    }
+                    let p = [(u as f32 - cx) * z / fx, (v as f32 - cy) * z / fy, z];
+                    Some((to_map.apply(p), pixel as u32, z))
+                })
+            })
+            .collect();
+        let mean_depth = if points.is_empty() {
+            0.0
+        } else {
+            points.iter().map(|p| p.2).sum::<f32>() / points.len() as f32
+        };
+        let (positions, pixels) = points.into_iter().map(|(p, i, _)| (p, i)).unzip();
+        Observed {
+            positions,
+            pixels,
+            mean_depth,
+        }
+    }
+
+    /// For every map point in the view of `obs`, the index of its nearest new point within
+    /// `max_distance`; `u32::MAX` for none.
+    fn correspondences(&self, obs: &Observation<'_>, new: &Observed) -> Vec<u32> {
+        let tree: ImmutableKdTree<f32, 3> = match ImmutableKdTree::new_from_slice(&new.positions) {
+            Ok(tree) => tree,
+            // Only fails for an empty slice, which the caller excludes; no correspondences then.
+            Err(_) => return vec![u32::MAX; self.positions.len()],
+        };
+        let k = &obs.frame.intrinsics;
+        let to_camera = Rigid::from_pose(&obs.pose.inverse());
+        let (fx, fy, cx, cy) = (k.fx as f32, k.fy as f32, k.cx as f32, k.cy as f32);
+        let (w, h) = (k.width as f32, k.height as f32);
+        let r2 = self.config.max_distance * self.config.max_distance;
+        self.positions
+            .par_iter()
+            .with_min_len(4096)
+            .map(|&q| {
+                let c = to_camera.apply(q);
+                if c[2] <= 0.0 {
+                    return u32::MAX;
+                }
+                let (u, v) = (fx * c[0] / c[2] + cx, fy * c[1] / c[2] + cy);
+                // Half a pixel of slack: points back-projected from the border pixels are in view.
+                if !(u >= -0.5 && v >= -0.5 && u < w - 0.5 && v < h - 0.5) {
+                    return u32::MAX;
+                }
+                let nearest = tree
+                    .query(&q)
+                    .nearest_one::<SquaredEuclidean<f32>>()
+                    .execute();
+                if nearest.distance <= r2 {
+                    nearest.item
+                } else {
+                    u32::MAX
+                }
+            })
+            .collect()
+    }
+
+    fn fuse(&mut self, obs: &Observation<'_>, new: &Observed, matches: &[u32]) {
+        let w = self.config.map_weight;
+        let colour = &obs.frame.colour;
+        let fuse_colour = |c: &mut [u8; 3], pixel: u32| {
+            let p = colour.at_index(pixel as usize);
+            for k in 0..3 {
+                c[k] = ((1.0 - w) * f32::from(p[k]) + w * f32::from(c[k])).round() as u8;
+            }
+        };
+        let Some(embeddings) = obs.embeddings.filter(|_| self.dim > 0) else {
+            self.colours
+                .par_iter_mut()
+                .zip(matches.par_iter())
+                .filter(|(_, m)| **m != u32::MAX)
+                .for_each(|(c, &m)| fuse_colour(c, new.pixels[m as usize]));
+            return;
+        };
+        let dim = self.dim;
+        let width = obs.frame.depth.width();
+        self.embeddings
+            .par_chunks_exact_mut(dim)
+            .zip(self.colours.par_iter_mut())
+            .zip(matches.par_iter())
+            .with_min_len(256)
+            .filter(|(_, m)| **m != u32::MAX)
+            .for_each_init(
+                || vec![0.0f32; dim],
+                |scratch, ((e_map, c), &m)| {
+                    let pixel = new.pixels[m as usize];
+                    fuse_colour(c, pixel);
+                    if let Some(e_new) = lookup(embeddings, pixel, width, &mut scratch[..]) {
+                        for (a, b) in e_map.iter_mut().zip(e_new) {
+                            *a = (1.0 - w) * b + w * *a;
+                        }
+                        // Opposite vectors cancel to zero: take the new observation then.
+                        if !normalise(e_map) {
+                            e_map.copy_from_slice(e_new);
+                        }
+                    }
+                },
+            );
+    }
+
+    fn insert(&mut self, obs: &Observation<'_>, new: &Observed, chosen: &[bool]) -> usize {
+        let fresh: Vec<usize> = (0..new.positions.len()).filter(|&i| !chosen[i]).collect();
+        let colour = &obs.frame.colour;
+        self.positions
+            .extend(fresh.iter().map(|&i| new.positions[i]));
+        self.colours.extend(
+            fresh
+                .iter()
+                .map(|&i| colour.at_index(new.pixels[i] as usize)),
+        );
+        let dim = self.dim;
+        if let Some(embeddings) = obs.embeddings
+            && dim > 0
+        {
+            let start = self.embeddings.len();
+            self.embeddings.resize(start + fresh.len() * dim, 0.0);
+            let width = obs.frame.depth.width();
+            self.embeddings[start..]
+                .par_chunks_exact_mut(dim)
+                .zip(fresh.par_iter())
+                .for_each_init(
+                    || vec![0.0f32; dim],
+                    |scratch, (row, &i)| {
+                        // Every observed pixel has an embedding (`observe` filters on it).
+                        if let Some(e) = lookup(embeddings, new.pixels[i], width, &mut scratch[..])
+                        {
+                            row.copy_from_slice(e);
+                        }
+                    },
+                );
+        }
+        fresh.len()
+    }
+
+    /// Merges points per voxel, growing the voxel until the budget holds. Returns points removed.
+    fn enforce_budget(&mut self, footprint: f32) -> usize {
+        let budget = self.config.max_points;
+        let before = self.positions.len();
+        if before <= budget {
+            return 0;
+        }
+        // Start at the current resolution, or at the pixel footprint of this frame (finer voxels
+        // would merge nothing).
+        let mut voxel = self.voxel_size.max(footprint).max(1e-4);
+        loop {
+            let mut keyed: Vec<(u64, u32)> = self
+                .positions
+                .par_iter()
+                .enumerate()
+                .map(|(i, p)| (voxel_key(p, voxel), i as u32))
+                .collect();
+            keyed.par_sort_unstable();
+            let occupied = 1 + keyed.windows(2).filter(|w| w[0].0 != w[1].0).count();
+            if occupied <= budget {
+                self.merge_groups(&keyed, occupied);
+                self.voxel_size = voxel;
+                return before - self.positions.len();
+            }
+            // Surfaces: the occupied count falls with the square of the voxel size.
+            let ratio = (occupied as f32 / budget as f32).sqrt();
+            voxel *= ratio.max(1.1);
+        }
+    }
+
+    fn merge_groups(&mut self, keyed: &[(u64, u32)], groups: usize) {
+        let mut starts = Vec::with_capacity(groups + 1);
+        starts.push(0usize);
+        starts.extend((1..keyed.len()).filter(|&i| keyed[i].0 != keyed[i - 1].0));
+        starts.push(keyed.len());
+        let members = |g: usize| {
+            keyed[starts[g]..starts[g + 1]]
+                .iter()
+                .map(|(_, i)| *i as usize)
+        };
+        let (positions, colours): (Vec<[f32; 3]>, Vec<[u8; 3]>) = (0..groups)
+            .into_par_iter()
+            .map(|g| {
+                let (mut p, mut c, mut n) = ([0.0f64; 3], [0u32; 3], 0u32);
+                for i in members(g) {
+                    for k in 0..3 {
+                        p[k] += f64::from(self.positions[i][k]);
+                        c[k] += u32::from(self.colours[i][k]);
+                    }
+                    n += 1;
+                }
+                let nf = f64::from(n);
+                (
+                    [(p[0] / nf) as f32, (p[1] / nf) as f32, (p[2] / nf) as f32],
+                    [(c[0] / n) as u8, (c[1] / n) as u8, (c[2] / n) as u8],
+                )
+            })
+            .unzip();
+        let dim = self.dim;
+        if dim > 0 {
+            let mut embeddings = vec![0.0f32; groups * dim];
+            embeddings
+                .par_chunks_exact_mut(dim)
+                .enumerate()
+                .for_each(|(g, row)| {
+                    let mut first = None;
+                    for i in members(g) {
+                        let e = &self.embeddings[i * dim..(i + 1) * dim];
+                        first.get_or_insert(i);
+                        row.iter_mut().zip(e).for_each(|(a, b)| *a += b);
+                    }
+                    // Members that cancel out: keep the first one's embedding.
+                    if !normalise(row)
+                        && let Some(i) = first
+                    {
+                        row.copy_from_slice(&self.embeddings[i * dim..(i + 1) * dim]);
+                    }
+                });
+            self.embeddings = embeddings;
+        }
+        self.positions = positions;
+        self.colours = colours;
+    }
+}
+
+/// The embedding of a pixel: the stored row for segments, interpolated into `scratch` for patches.
+#[inline]
+fn lookup<'a>(
+    embeddings: &'a PixelEmbeddings,
+    pixel: u32,
+    width: u32,
+    scratch: &'a mut [f32],
+) -> Option<&'a [f32]> {
+    let (u, v) = (pixel % width, pixel / width);
+    match embeddings.segment_row(u, v) {
+        Some(row) => Some(row),
+        None => embeddings.embedding_at(u, v, scratch).then_some(&*scratch),
+    }
+}
+
+/// Packs the voxel coordinates of `p` (21 bits per axis, about ±1 km at 1 mm voxels).
+fn voxel_key(p: &[f32; 3], voxel: f32) -> u64 {
+    const OFFSET: i64 = 1 << 20;
+    const MASK: i64 = (1 << 21) - 1;
+    let axis = |x: f32| (((x / voxel).floor() as i64 + OFFSET).clamp(0, MASK)) as u64;
+    (axis(p[0]) << 42) | (axis(p[1]) << 21) | axis(p[2])
+}
+
+impl EmbeddingMap for PointCloudMap {
+    fn name(&self) -> &'static str {
+        NAME
+    }
+
+    fn dim(&self) -> usize {
+        self.dim
+    }
+
+    fn integrate(&mut self, obs: &Observation<'_>) -> vlem_core::Result<IntegrationStats> {
+        self.check(obs)
+            .map_err(|e| CoreError::stage(StageKind::Map, NAME, e))?;
+        let new = self.observe(obs);
+        let mut stats = IntegrationStats {
+            observed: new.positions.len(),
+            ..IntegrationStats::default()
+        };
+        self.frames += 1;
+        if new.positions.is_empty() {
+            return Ok(stats);
+        }
+        let mut chosen = vec![false; new.positions.len()];
+        if !self.positions.is_empty() {
+            let matches = self.correspondences(obs, &new);
+            for &m in matches.iter().filter(|m| **m != u32::MAX) {
+                chosen[m as usize] = true;
+                stats.fused += 1;
+            }
+            self.fuse(obs, &new, &matches);
+        }
+        stats.inserted = self.insert(obs, &new, &chosen);
+        let footprint =
+            new.mean_depth / obs.frame.intrinsics.fx as f32 * self.config.pixel_stride as f32;
+        stats.removed = self.enforce_budget(footprint);
+        Ok(stats)
+    }
+
+    fn len(&self) -> usize {
+        self.positions.len()
+    }
+
+    fn memory_bytes(&self) -> usize {
+        self.positions.capacity() * std::mem::size_of::<[f32; 3]>()
+            + self.colours.capacity() * 3
+            + self.embeddings.capacity() * std::mem::size_of::<f32>()
+    }
+
+    fn similarity(&self, text: &[f32], out: &mut Vec<f32>) -> vlem_core::Result<()> {
+        vlem_core::query::normalised_similarity(&self.embeddings, self.dim, text, out)
+    }
+
+    fn snapshot(&self) -> MapSnapshot {
+        MapSnapshot {
+            map_kind: NAME.into(),
+            dim: self.dim,
+            positions: self.positions.clone(),
+            colours: self.colours.clone(),
+            embeddings: self.embeddings.clone(),
+            metadata: MapMetadata {
+                frames_integrated: self.frames,
+                ..MapMetadata::default()
+            },
+        }
+    }
+
+    fn restore(&mut self, snapshot: MapSnapshot) -> vlem_core::Result<()> {
+        snapshot.validate()?;
+        if snapshot.dim != self.dim {
+            return Err(CoreError::DimensionMismatch {
+                what: format!("snapshot of map `{}`", snapshot.map_kind),
+                expected: self.dim,
+                actual: snapshot.dim,
+            });
+        }
+        self.frames = snapshot.metadata.frames_integrated;
+        self.positions = snapshot.positions;
+        self.colours = snapshot.colours;
+        self.embeddings = snapshot.embeddings;
+        self.voxel_size = 0.0;
+        let _ = self.enforce_budget(0.0);
+        Ok(())
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use vlem_core::{DepthImage, Frame, Intrinsics, Pose, RgbImage};
+
+    const DIM: usize = 4;
+
+    fn plane(depth: f32) -> Frame {
+        let k = Intrinsics::new(16, 12, 20.0, 20.0, 7.5, 5.5).unwrap();
+        Frame::new(
+            0,
+            0.0,
+            RgbImage::filled(16, 12, [200, 100, 0]),
+            DepthImage::new(16, 12, vec![depth; 16 * 12]).unwrap(),
+            k,
+            None,
+        )
+        .unwrap()
+    }
+
+    fn uniform(e: [f32; DIM]) -> PixelEmbeddings {
+        PixelEmbeddings::from_segments(16, 12, DIM, vec![0; 16 * 12], e.to_vec()).unwrap()
+    }
+
+    fn map(config: PointCloudConfig) -> PointCloudMap {
+        config.build(Some(DIM)).unwrap()
+    }
+
+    fn integrate(
+        m: &mut PointCloudMap,
+        f: &Frame,
+        pose: &Pose,
+        e: &PixelEmbeddings,
+    ) -> IntegrationStats {
+        m.integrate(&Observation {
+            frame: f,
+            pose,
+            embeddings: Some(e),
+        })
+        .unwrap()
+    }
+
+    #[test]
+    fn fusion_is_the_papers_weighted_average_renormalised() {
+        let mut m = map(PointCloudConfig {
+            map_weight: 0.25,
+            ..PointCloudConfig::default()
+        });
+        let f = plane(1.0);
+        let first = integrate(
+            &mut m,
+            &f,
+            &Pose::identity(),
+            &uniform([1.0, 0.0, 0.0, 0.0]),
+        );
+        assert_eq!(first.inserted, 16 * 12);
+        let second = integrate(
+            &mut m,
+            &f,
+            &Pose::identity(),
+            &uniform([0.0, 1.0, 0.0, 0.0]),
+        );
+        assert_eq!((second.fused, second.inserted), (16 * 12, 0));
+        // e = normalise(0.75 * e_P + 0.25 * e_M)
+        let n = (0.75f32 * 0.75 + 0.25 * 0.25).sqrt();
+        for row in m.embeddings().chunks_exact(DIM) {
+            assert!(
+                (row[0] - 0.25 / n).abs() < 1e-6 && (row[1] - 0.75 / n).abs() < 1e-6,
+                "{row:?}"
+            );
+        }
+        assert_eq!(m.len(), 16 * 12);
+    }
+
+    #[test]
+    fn points_without_a_correspondence_are_inserted() {
+        let mut m = map(PointCloudConfig::default());
+        let e = uniform([1.0, 0.0, 0.0, 0.0]);
+        integrate(&mut m, &plane(1.0), &Pose::identity(), &e);
+        // The same plane 0.5 m further away: out of reach of every map point (max 2 cm).
+        let stats = integrate(&mut m, &plane(1.5), &Pose::identity(), &e);
+        assert_eq!((stats.fused, stats.inserted), (0, 16 * 12));
+        assert_eq!(m.len(), 2 * 16 * 12);
+    }
+
+    #[test]
+    fn opposite_embeddings_fall_back_to_the_observation() {
+        let mut m = map(PointCloudConfig::default());
+        let f = plane(1.0);
+        integrate(
+            &mut m,
+            &f,
+            &Pose::identity(),
+            &uniform([1.0, 0.0, 0.0, 0.0]),
+        );
+        integrate(
+            &mut m,
+            &f,
+            &Pose::identity(),
+            &uniform([-1.0, 0.0, 0.0, 0.0]),
+        );
+        assert!(
+            m.embeddings()
+                .chunks_exact(DIM)
+                .all(|r| r == [-1.0, 0.0, 0.0, 0.0])
+        );
+    }
+
+    #[test]
+    fn downsampling_merges_dense_regions_and_keeps_sparse_points() {
+        let mut positions = Vec::new();
+        // 1000 points packed into a 1 cm cube.
+        for i in 0..1000 {
+            let (a, b, c) = (i % 10, i / 10 % 10, i / 100);
+            positions.push([a as f32 * 1e-3, b as f32 * 1e-3, c as f32 * 1e-3]);
+        }
+        // 20 isolated points 1 m apart.
+        let sparse: Vec<[f32; 3]> = (0..20).map(|i| [5.0 + i as f32, 0.3, 0.7]).collect();
+        positions.extend(&sparse);
+        let n = positions.len();
+        let mut embeddings = Vec::new();
+        for i in 0..n {
+            let mut e = [0.0; DIM];
+            e[i % DIM] = 1.0;
+            embeddings.extend(e);
+        }
+        let snapshot = MapSnapshot {
+            map_kind: NAME.into(),
+            dim: DIM,
+            positions,
+            colours: vec![[10, 20, 30]; n],
+            embeddings,
+            metadata: MapMetadata::default(),
+        };
+        let mut m = map(PointCloudConfig {
+            max_points: 100,
+            ..PointCloudConfig::default()
+        });
+        m.restore(snapshot).unwrap();
+        assert!(m.len() <= 100, "{} points over a budget of 100", m.len());
+        for p in &sparse {
+            assert!(
+                m.positions().contains(p),
+                "sparse point {p:?} was moved or dropped"
+            );
+        }
+        for row in m.embeddings().chunks_exact(DIM) {
+            let norm = row.iter().map(|x| x * x).sum::<f32>().sqrt();
+            assert!((norm - 1.0).abs() < 1e-5);
+        }
+    }
+
+    #[test]
+    fn invalid_parameters_are_named() {
+        let err = PointCloudConfig {
+            map_weight: 1.5,
+            ..PointCloudConfig::default()
+        }
+        .build(Some(DIM))
+        .unwrap_err();
+        assert_eq!(
+            err.to_string(),
+            "map `point-cloud`: parameter `map_weight` must lie in [0, 1]"
+        );
+        let err = PointCloudConfig {
+            dim: Some(512),
+            ..PointCloudConfig::default()
+        }
+        .build(Some(DIM))
+        .unwrap_err();
+        assert_eq!(
+            err.to_string(),
+            "map `point-cloud`: parameter `dim` is 512 but the encoder produces 4-d embeddings: \
+             remove `dim` or set it to 4"
+        );
+    }
+
+    #[test]
+    fn geometry_only_map_keeps_points_and_colours() {
+        let mut m = PointCloudConfig::default().build(None).unwrap();
+        assert_eq!(m.dim(), 0);
+        let f = plane(1.0);
+        let obs = Observation {
+            frame: &f,
+            pose: &Pose::identity(),
+            embeddings: None,
+        };
+        m.integrate(&obs).unwrap();
+        m.integrate(&obs).unwrap();
+        assert_eq!(m.len(), 16 * 12);
+        assert!(m.snapshot().colours.iter().all(|c| *c == [200, 100, 0]));
+        let mut out = Vec::new();
+        assert!(m.similarity(&[], &mut out).is_err());
+    }
+}
