@@ -1,0 +1,13 @@
+//! vlem-testkit: conformance suites that every implementation of a vlem stage runs.
+//!
+//! Each suite is a macro that expands into `#[test]` functions inside the implementing crate, so a
+//! plugin gets the whole contract checked by adding one line to a file under `tests/`. The macros
+//! call plain functions of this crate, which are public so that a failing check can also be rerun
+//! by hand.
+//!
+//! - [`encoder_conformance!`]: for [`vlem_core::Encoder`] implementations.
+//! - [`map_conformance!`]: for [`vlem_core::EmbeddingMap`] implementations.
+
+pub mod encoder;
+pub mod images;
+pub mod map;
