@@ -1,0 +1,190 @@
+//! ICL-NUIM (augmented) / Redwood / Open3D folders.
+//!
+//! ```text
+//! color/ (or image/)   00000.jpg ...  colour, .jpg or .png
+//! depth/               00000.png ...  16-bit depth, 1000 units per metre
+//! rgbd.match           optional: lines `depth/00000.png color/00000.jpg` pairing the two
+//! intrinsics.json      Open3D PinholeCameraIntrinsic (or camera_intrinsic.json, or [dataset] intrinsics)
+//! trajectory.log       optional Redwood .log, camera-to-world (or the only *.log, or [dataset] trajectory)
+//! ```
+//!
+//! Without `rgbd.match`, colour and depth files are paired by their sorted order, so numbering may
+//! start anywhere.
+
+use std::path::{Path, PathBuf};
+
+use vlem_core::config::DatasetConfig;
+
+use crate::calibration::read_open3d_intrinsics;
+use crate::error::{DatasetError, Result};
+use crate::sequence::{
+    Camera, ColourFit, Entry, Selection, Sequence, attach_poses, depth_scale, list_files,
+    reader_via_sequence, require_file,
+};
+use crate::text::{data_lines, read_text};
+use crate::trajectory::read_log;
+
+/// Raw depth units per metre of ICL-NUIM and Redwood (millimetres).
+pub const ICL_DEPTH_SCALE: f64 = 1000.0;
+
+/// Names tried for the colour folder: Open3D/ICL use `color/`, Redwood `image/`.
+const COLOUR_DIRS: [&str; 2] = ["color", "image"];
+
+/// Names tried for the intrinsics file when `[dataset] intrinsics` is not set.
+const INTRINSICS_FILES: [&str; 2] = ["intrinsics.json", "camera_intrinsic.json"];
+
+const COLOUR_EXTENSIONS: [&str; 3] = ["jpg", "jpeg", "png"];
+
+/// Reader of an ICL-NUIM / Redwood / Open3D folder (see the module docs for the layout).
+#[derive(Debug)]
+pub struct IclReader {
+    seq: Sequence,
+}
+
+reader_via_sequence!(IclReader);
+
+impl IclReader {
+    /// Opens the folder `dir`: pairs the frame files and reads intrinsics and trajectory; images are
+    /// decoded only by [`IclReader::load`] / `frame`.
+    ///
+    /// # Errors
+    /// [`DatasetError::MissingFile`] for a missing `depth/`, colour folder or intrinsics file (the
+    /// message lists the names tried), [`DatasetError::CountMismatch`] when the folders cannot be
+    /// paired, trajectory errors of [`read_log`], [`DatasetError::TooFewPoses`],
+    /// [`DatasetError::Ambiguous`] for several `.log` files, [`DatasetError::BadConfig`] and
+    /// [`DatasetError::Empty`].
+    pub fn open(dir: &Path, config: &DatasetConfig) -> Result<Self> {
+        let selection = Selection::from_config(config, dir)?;
+        let scale = depth_scale(config, ICL_DEPTH_SCALE, dir)?;
+        let mut selected = selection.apply(frame_files(dir)?);
+        let intrinsics_path = find_intrinsics(dir, config)?;
+        let intrinsics = read_open3d_intrinsics(&intrinsics_path)?;
+        if let Some(trajectory) = find_trajectory(dir, config)? {
+            attach_poses(&mut selected, &read_log(&trajectory)?, &trajectory)?;
+        }
+        let seq = Sequence::new(
+            "ICL-NUIM/Redwood",
+            dir,
+            selected,
+            Camera::from_file(intrinsics, &intrinsics_path),
+            scale,
+            ColourFit::SameSize,
+        )?;
+        Ok(Self { seq })
+    }
+}
+
+/// The colour/depth pairs of the underlying sequence, from `rgbd.match` or by sorted order.
+fn frame_files(dir: &Path) -> Result<Vec<Entry>> {
+    let matches = dir.join("rgbd.match");
+    if matches.is_file() {
+        return read_match_file(dir, &matches);
+    }
+    let colour_dir = COLOUR_DIRS
+        .iter()
+        .map(|name| dir.join(name))
+        .find(|d| d.is_dir())
+        .unwrap_or_else(|| dir.join(COLOUR_DIRS[0]));
+    let colour = list_files(
+        &colour_dir,
+        &COLOUR_EXTENSIONS,
+        "an ICL-NUIM/Redwood folder needs color/ (or image/) holding .jpg or .png frames",
+    )?;
+    let depth_dir = dir.join("depth");
+    let depth = list_files(
+        &depth_dir,
+        &["png"],
+        "an ICL-NUIM/Redwood folder needs depth/ holding 16-bit .png frames",
+    )?;
+    if colour.len() != depth.len() {
+        return Err(DatasetError::CountMismatch {
+            colour_dir,
+            colour_count: colour.len(),
+            depth_dir,
+            depth_count: depth.len(),
+        });
+    }
+    Ok(colour
+        .into_iter()
+        .zip(depth)
+        .map(|(c, d)| Entry::new(c, d))
+        .collect())
+}
+
+/// Reads `rgbd.match`: one `depth-path colour-path` pair per line, relative to the folder.
+fn read_match_file(dir: &Path, path: &Path) -> Result<Vec<Entry>> {
+    let text = read_text(path)?;
+    let mut entries = Vec::new();
+    for (line, content) in data_lines(&text) {
+        let fields: Vec<&str> = content.split_whitespace().collect();
+        let &[depth, colour] = fields.as_slice() else {
+            return Err(DatasetError::parse(
+                path,
+                line,
+                format!(
+                    "expected `depth-file colour-file`, found {} fields",
+                    fields.len()
+                ),
+            ));
+        };
+        let (depth, colour) = (dir.join(depth), dir.join(colour));
+        let listed = || format!("listed in {} line {line}", path.display());
+        require_file(&depth, listed)?;
+        require_file(&colour, listed)?;
+        entries.push(Entry::new(colour, depth));
+    }
+    Ok(entries)
+}
+
+/// The intrinsics file: `[dataset] intrinsics`, else the first of [`INTRINSICS_FILES`]. There is
+/// deliberately no default camera: a wrong focal length silently bends the whole map.
+fn find_intrinsics(dir: &Path, config: &DatasetConfig) -> Result<PathBuf> {
+    if let Some(path) = &config.intrinsics {
+        let path = dir.join(path);
+        require_file(&path, || "set by [dataset] intrinsics".to_owned())?;
+        return Ok(path);
+    }
+    INTRINSICS_FILES
+        .iter()
+        .map(|name| dir.join(name))
+        .find(|p| p.is_file())
+        .ok_or_else(|| DatasetError::MissingFile {
+            path: dir.join(INTRINSICS_FILES[0]),
+            hint: format!(
+                "looked for {} in {}; ICL-NUIM/Redwood frames need the camera as an Open3D \
+                 PinholeCameraIntrinsic JSON: add one or set [dataset] intrinsics",
+                INTRINSICS_FILES.join(" and "),
+                dir.display()
+            ),
+        })
+}
+
+/// The trajectory file, if any: `[dataset] trajectory`, else `trajectory.log`, else the folder's
+/// only `.log` file.
+fn find_trajectory(dir: &Path, config: &DatasetConfig) -> Result<Option<PathBuf>> {
+    if let Some(path) = &config.trajectory {
+        let path = dir.join(path);
+        require_file(&path, || "set by [dataset] trajectory".to_owned())?;
+        return Ok(Some(path));
+    }
+    let default = dir.join("trajectory.log");
+    if default.is_file() {
+        return Ok(Some(default));
+    }
+    let mut logs = list_files(dir, &["log"], "the dataset folder")?;
+    match logs.len() {
+        0 | 1 => Ok(logs.pop()),
+        _ => Err(DatasetError::Ambiguous {
+            path: dir.to_path_buf(),
+            message: format!(
+                "several trajectories and none named trajectory.log ({}); choose one with \
+                 [dataset] trajectory",
+                logs.iter()
+                    .filter_map(|p| p.file_name())
+                    .map(|n| n.to_string_lossy())
+                    .collect::<Vec<_>>()
+                    .join(", ")
+            ),
+        }),
+    }
+}

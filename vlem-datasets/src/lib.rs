@@ -1,0 +1,125 @@
+//! vlem-datasets: [`FrameSource`] readers for RGB-D dataset folders, and trajectory files.
+//!
+//! Layouts (see each module for the files it reads):
+//! - [`icl`]: ICL-NUIM (augmented) / Redwood / Open3D folders, depth scale 1000;
+//! - [`tum`]: TUM RGB-D, colour associated to depth within 0.02 s, depth scale 5000;
+//! - [`scannet`]: ScanNet exports, colour resampled to the depth camera, depth scale 1000;
+//! - [`replica`]: Replica as packaged by NICE-SLAM, depth scale 6553.5.
+//!
+//! [`open`] builds the reader for a `[dataset]` config, detecting the layout with [`detect_kind`]
+//! when `kind = "auto"`. Readers list the files when opened and decode a frame only when it is
+//! asked for. Every error ([`DatasetError`]) names the file involved; through [`FrameSource`] it
+//! arrives as [`vlem_core::CoreError::Dataset`].
+//!
+//! Common `[dataset]` settings: frame `i` of a reader is frame `i * stride` of the recording, at
+//! most `max_frames` frames are used, `depth_scale` overrides the layout's default, and a frame's
+//! timestamp is the dataset's own or, where the layout has none, its index in the recording.
+
+use std::path::Path;
+
+use vlem_core::FrameSource;
+use vlem_core::config::{DatasetConfig, DatasetKind};
+
+pub mod calibration;
+mod error;
+pub mod icl;
+mod images;
+pub mod replica;
+pub mod scannet;
+mod sequence;
+mod text;
+pub mod trajectory;
+pub mod tum;
+
+pub use calibration::{REPLICA_DEFAULT_INTRINSICS, TUM_DEFAULT_INTRINSICS, read_open3d_intrinsics};
+pub use error::{DatasetError, Result};
+pub use icl::IclReader;
+pub use replica::ReplicaReader;
+pub use scannet::ScanNetReader;
+pub use tum::TumReader;
+
+/// What [`detect_kind`] looks for, in the order it checks.
+const LAYOUTS_LOOKED_FOR: &str = "looked for rgb.txt and depth.txt (TUM RGB-D), results/ \
+    (Replica, NICE-SLAM), intrinsic/ or pose/ beside depth/ (ScanNet export), and color/ or \
+    image/ beside depth/, or rgbd.match (ICL-NUIM/Redwood); set [dataset] kind to skip detection";
+
+/// Detects the layout of the dataset folder `dir` from the files it holds.
+///
+/// # Errors
+/// [`DatasetError::MissingFile`] when `dir` is not a folder, [`DatasetError::Empty`] when it holds
+/// nothing, and [`DatasetError::UnknownLayout`] (listing what was looked for and what was found)
+/// when it matches no layout.
+pub fn detect_kind(dir: &Path) -> Result<DatasetKind> {
+    if !dir.is_dir() {
+        return Err(DatasetError::MissingFile {
+            path: dir.to_path_buf(),
+            hint: "the dataset folder does not exist".to_owned(),
+        });
+    }
+    let has_file = |name: &str| dir.join(name).is_file();
+    let has_dir = |name: &str| dir.join(name).is_dir();
+    let kind = if has_file("rgb.txt") && has_file("depth.txt") {
+        DatasetKind::Tum
+    } else if has_dir("results") {
+        DatasetKind::Replica
+    } else if has_dir("depth") && (has_dir("intrinsic") || has_dir("pose")) {
+        DatasetKind::Scannet
+    } else if has_file("rgbd.match") || (has_dir("depth") && (has_dir("color") || has_dir("image")))
+    {
+        DatasetKind::Icl
+    } else {
+        return Err(unknown_layout(dir));
+    };
+    Ok(kind)
+}
+
+/// [`DatasetError::Empty`] for an empty folder, else [`DatasetError::UnknownLayout`] naming what
+/// was looked for and what is there.
+fn unknown_layout(dir: &Path) -> DatasetError {
+    let mut found: Vec<String> = std::fs::read_dir(dir)
+        .into_iter()
+        .flatten()
+        .flatten()
+        .map(|e| {
+            let name = e.file_name().to_string_lossy().into_owned();
+            if e.path().is_dir() { name + "/" } else { name }
+        })
+        .collect();
+    if found.is_empty() {
+        return DatasetError::Empty {
+            path: dir.to_path_buf(),
+        };
+    }
+    found.sort();
+    const SHOWN: usize = 10;
+    let more = found.len().saturating_sub(SHOWN);
+    found.truncate(SHOWN);
+    let mut listing = found.join(", ");
+    if more > 0 {
+        listing.push_str(&format!(" and {more} more"));
+    }
+    DatasetError::UnknownLayout {
+        path: dir.to_path_buf(),
+        message: format!("{LAYOUTS_LOOKED_FOR}; found {listing}"),
+    }
+}
+
+/// Opens the dataset folder `dir` with the reader that `config.kind` names, or the one
+/// [`detect_kind`] picks for `auto`. `config.path` is not used: the caller resolves it to `dir`.
+///
+/// # Errors
+/// The errors of [`detect_kind`] and of the reader's `open` (e.g. [`IclReader::open`]); an empty
+/// dataset is [`DatasetError::Empty`].
+pub fn open(config: &DatasetConfig, dir: &Path) -> Result<Box<dyn FrameSource>> {
+    let kind = match config.kind {
+        DatasetKind::Auto => detect_kind(dir)?,
+        kind => kind,
+    };
+    Ok(match kind {
+        DatasetKind::Tum => Box::new(TumReader::open(dir, config)?),
+        DatasetKind::Scannet => Box::new(ScanNetReader::open(dir, config)?),
+        DatasetKind::Replica => Box::new(ReplicaReader::open(dir, config)?),
+        // `detect_kind` never returns `Auto`, so this arm is ICL only.
+        DatasetKind::Icl | DatasetKind::Auto => Box::new(IclReader::open(dir, config)?),
+    })
+}

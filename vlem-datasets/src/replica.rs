@@ -1,0 +1,115 @@
+//! Replica as rendered and packaged by NICE-SLAM.
+//!
+//! ```text
+//! results/frame000000.jpg   colour
+//! results/depth000000.png   16-bit depth, 6553.5 units per metre
+//! traj.txt                  optional: one line per frame, the 16 numbers of the 4x4
+//!                           camera-to-world matrix, row-major
+//! ```
+//!
+//! Replica ships no intrinsics file: `[dataset] intrinsics` (Open3D JSON) is used when set,
+//! otherwise [`REPLICA_DEFAULT_INTRINSICS`].
+
+use std::path::Path;
+
+use nalgebra::Matrix4;
+use vlem_core::Pose;
+use vlem_core::config::DatasetConfig;
+
+use crate::calibration::{REPLICA_DEFAULT_INTRINSICS, read_open3d_intrinsics};
+use crate::error::Result;
+use crate::sequence::{
+    Camera, ColourFit, Entry, Selection, Sequence, attach_poses, depth_scale, list_files,
+    reader_via_sequence, require_file,
+};
+use crate::text::{data_lines, parse_exact, read_text};
+use crate::trajectory::pose_from_matrix;
+
+/// Raw depth units per metre of NICE-SLAM's Replica renders.
+pub const REPLICA_DEPTH_SCALE: f64 = 6553.5;
+
+/// Reader of a NICE-SLAM Replica scene folder (see the module docs).
+#[derive(Debug)]
+pub struct ReplicaReader {
+    seq: Sequence,
+}
+
+reader_via_sequence!(ReplicaReader);
+
+impl ReplicaReader {
+    /// Opens the folder `dir`: pairs `frameN.jpg` with `depthN.png` and reads `traj.txt`.
+    ///
+    /// # Errors
+    /// [`DatasetError::MissingFile`](crate::DatasetError::MissingFile) for a missing `results/` or depth file of a colour frame,
+    /// [`DatasetError::Parse`](crate::DatasetError::Parse) / [`DatasetError::NonFinitePose`](crate::DatasetError::NonFinitePose) / [`DatasetError::NotRotation`](crate::DatasetError::NotRotation)
+    /// for a bad `traj.txt` line, [`DatasetError::TooFewPoses`](crate::DatasetError::TooFewPoses), the errors of
+    /// [`read_open3d_intrinsics`], [`DatasetError::BadConfig`](crate::DatasetError::BadConfig) and [`DatasetError::Empty`](crate::DatasetError::Empty).
+    pub fn open(dir: &Path, config: &DatasetConfig) -> Result<Self> {
+        let selection = Selection::from_config(config, dir)?;
+        let scale = depth_scale(config, REPLICA_DEPTH_SCALE, dir)?;
+        let mut selected = selection.apply(frame_files(dir)?);
+        let trajectory = dir.join("traj.txt");
+        if trajectory.is_file() {
+            attach_poses(&mut selected, &read_trajectory(&trajectory)?, &trajectory)?;
+        }
+        let camera = match &config.intrinsics {
+            Some(path) => {
+                let path = dir.join(path);
+                Camera::from_file(read_open3d_intrinsics(&path)?, &path)
+            }
+            None => Camera {
+                intrinsics: REPLICA_DEFAULT_INTRINSICS,
+                origin:
+                    "the NICE-SLAM Replica default 600/600/599.5/339.5; set [dataset] intrinsics"
+                        .to_owned(),
+            },
+        };
+        let seq = Sequence::new(
+            "Replica (NICE-SLAM)",
+            dir,
+            selected,
+            camera,
+            scale,
+            ColourFit::SameSize,
+        )?;
+        Ok(Self { seq })
+    }
+}
+
+/// `results/frameN.jpg` (or `.png`) with its `results/depthN.png`, in frame order.
+fn frame_files(dir: &Path) -> Result<Vec<Entry>> {
+    let results = dir.join("results");
+    let files = list_files(
+        &results,
+        &["jpg", "jpeg", "png"],
+        "a NICE-SLAM Replica folder needs results/ holding frameNNNNNN.jpg and depthNNNNNN.png",
+    )?;
+    let mut entries = Vec::new();
+    for colour in files {
+        let Some(number) = colour
+            .file_stem()
+            .and_then(|s| s.to_str())
+            .and_then(|s| s.strip_prefix("frame"))
+        else {
+            continue;
+        };
+        let depth = results.join(format!("depth{number}.png"));
+        require_file(&depth, || {
+            format!("the depth frame of {}", colour.display())
+        })?;
+        entries.push(Entry::new(colour, depth));
+    }
+    Ok(entries)
+}
+
+/// Reads `traj.txt`: one row-major 4x4 camera-to-world matrix per line.
+fn read_trajectory(path: &Path) -> Result<Vec<Pose>> {
+    let text = read_text(path)?;
+    data_lines(&text)
+        .enumerate()
+        .map(|(frame, (line, content))| {
+            let values = parse_exact(path, line, content, 16)?;
+            pose_from_matrix(&Matrix4::from_row_slice(&values), path, frame)
+        })
+        .collect()
+}

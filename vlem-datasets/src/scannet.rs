@@ -1,0 +1,143 @@
+//! ScanNet exports (the output of ScanNet's `reader.py` / `SensReader`).
+//!
+//! ```text
+//! color/N.jpg                     colour, 1296x968
+//! depth/N.png                     16-bit depth, 640x480, 1000 units per metre
+//! pose/N.txt                      optional: 4x4 camera-to-world matrix, one row per line
+//! intrinsic/intrinsic_depth.txt   4x4 matrix of the depth camera, one row per line
+//! ```
+//!
+//! The colour camera has a higher resolution than the depth camera it is registered to, so each
+//! colour image is resampled (bilinear) to the depth resolution and the frame uses the DEPTH
+//! intrinsics. ScanNet writes `-inf` poses for frames its tracking lost; such a pose is reported by
+//! [`ScanNetReader::load`] as [`DatasetError::NonFinitePose`] naming the pose file, and only for
+//! that frame.
+
+use std::path::Path;
+
+use nalgebra::Matrix4;
+use vlem_core::config::DatasetConfig;
+use vlem_core::{Intrinsics, Pose};
+
+use crate::calibration::validated;
+use crate::error::{DatasetError, Result};
+use crate::images;
+use crate::sequence::{
+    Camera, ColourFit, Entry, PoseRef, Selection, Sequence, depth_scale, list_files,
+    reader_via_sequence, require_file,
+};
+use crate::trajectory::{pose_from_matrix, read_matrix_rows};
+
+/// Raw depth units per metre of ScanNet (millimetres).
+pub const SCANNET_DEPTH_SCALE: f64 = 1000.0;
+
+/// Reader of a ScanNet export folder (see the module docs).
+#[derive(Debug)]
+pub struct ScanNetReader {
+    seq: Sequence,
+}
+
+reader_via_sequence!(ScanNetReader);
+
+impl ScanNetReader {
+    /// Opens the folder `dir`: pairs depth, colour and pose files by frame number and reads the
+    /// depth intrinsics.
+    ///
+    /// # Errors
+    /// [`DatasetError::MissingFile`] for a missing folder, intrinsics file, or the colour or pose
+    /// file of a depth frame, [`DatasetError::Parse`] for a malformed intrinsics matrix,
+    /// [`DatasetError::Core`] for invalid intrinsics, [`DatasetError::BadConfig`] and
+    /// [`DatasetError::Empty`].
+    pub fn open(dir: &Path, config: &DatasetConfig) -> Result<Self> {
+        let selection = Selection::from_config(config, dir)?;
+        let scale = depth_scale(config, SCANNET_DEPTH_SCALE, dir)?;
+        let selected = selection.apply(frame_files(dir)?);
+        let Some((_, first)) = selected.first() else {
+            return Err(DatasetError::Empty {
+                path: dir.to_path_buf(),
+            });
+        };
+        let intrinsics_path = dir.join("intrinsic").join("intrinsic_depth.txt");
+        let (width, height) = images::dimensions(&first.depth)?;
+        let intrinsics = read_depth_intrinsics(&intrinsics_path, width, height)?;
+        let seq = Sequence::new(
+            "ScanNet",
+            dir,
+            selected,
+            Camera::from_file(intrinsics, &intrinsics_path),
+            scale,
+            ColourFit::ResizeToDepth,
+        )?;
+        Ok(Self { seq })
+    }
+}
+
+/// The frames of the export, in numeric order of their depth files.
+fn frame_files(dir: &Path) -> Result<Vec<Entry>> {
+    let depth = list_files(
+        &dir.join("depth"),
+        &["png"],
+        "a ScanNet export needs depth/ holding N.png depth frames",
+    )?;
+    let colour_dir = dir.join("color");
+    if !colour_dir.is_dir() {
+        return Err(DatasetError::MissingFile {
+            path: colour_dir,
+            hint: "a ScanNet export needs color/ holding N.jpg colour frames".to_owned(),
+        });
+    }
+    let pose_dir = dir.join("pose");
+    let has_poses = pose_dir.is_dir();
+    let mut entries = Vec::with_capacity(depth.len());
+    for depth in depth {
+        let Some(stem) = depth.file_stem().map(|s| s.to_os_string()) else {
+            continue;
+        };
+        let named = |folder: &Path, ext: &str| {
+            let mut name = stem.clone();
+            name.push(ext);
+            folder.join(name)
+        };
+        let colour = [".jpg", ".png"]
+            .iter()
+            .map(|ext| named(&colour_dir, ext))
+            .find(|p| p.is_file())
+            .ok_or_else(|| DatasetError::MissingFile {
+                path: named(&colour_dir, ".jpg"),
+                hint: format!("the colour frame of {}", depth.display()),
+            })?;
+        let pose = if has_poses {
+            let path = named(&pose_dir, ".txt");
+            require_file(&path, || format!("the pose of {}", depth.display()))?;
+            PoseRef::File(path)
+        } else {
+            PoseRef::None
+        };
+        entries.push(Entry {
+            pose,
+            ..Entry::new(colour, depth)
+        });
+    }
+    Ok(entries)
+}
+
+/// The depth camera from `intrinsic_depth.txt` (a 4x4 matrix whose top-left 3x3 block is K),
+/// for depth images of `width` x `height`.
+fn read_depth_intrinsics(path: &Path, width: u32, height: u32) -> Result<Intrinsics> {
+    require_file(path, || {
+        "a ScanNet export needs intrinsic/intrinsic_depth.txt (the depth camera's 4x4 matrix)"
+            .to_owned()
+    })?;
+    let k = read_matrix_rows(path, 4)?;
+    validated(
+        Intrinsics::new(width, height, k[0][0], k[1][1], k[0][2], k[1][2]),
+        path,
+    )
+}
+
+/// Reads one ScanNet pose file (4x4 camera-to-world, rows) for frame `frame`.
+pub(crate) fn read_pose(path: &Path, frame: usize) -> Result<Pose> {
+    let rows = read_matrix_rows(path, 4)?;
+    let values: Vec<f64> = rows.into_iter().flatten().collect();
+    pose_from_matrix(&Matrix4::from_row_slice(&values), path, frame)
+}

@@ -1,0 +1,398 @@
+//! What every reader shares: the list of frame files, the stride / `max_frames` selection, and
+//! lazy decoding of one frame.
+//!
+//! A reader's only job is to turn its layout into a list of [`Entry`]s and a camera; decoding, unit
+//! conversion and the consistency checks live here so that every layout behaves the same.
+
+use std::path::{Path, PathBuf};
+
+use vlem_core::config::DatasetConfig;
+use vlem_core::{Frame, Intrinsics, Pose};
+
+use crate::error::{DatasetError, Result};
+use crate::images;
+
+/// Where a frame's pose comes from.
+#[derive(Clone, Debug)]
+pub(crate) enum PoseRef {
+    /// The layout has no poses for this sequence.
+    None,
+    /// Read when the sequence was opened (whole-trajectory files).
+    Known(Pose),
+    /// A one-pose file read with the frame (ScanNet), so that one lost frame does not make the
+    /// whole sequence unusable.
+    File(PathBuf),
+}
+
+/// The files of one frame of the underlying sequence.
+#[derive(Clone, Debug)]
+pub(crate) struct Entry {
+    pub(crate) colour: PathBuf,
+    pub(crate) depth: PathBuf,
+    /// The dataset's own timestamp, where the layout has one.
+    pub(crate) timestamp: Option<f64>,
+    pub(crate) pose: PoseRef,
+}
+
+impl Entry {
+    /// A frame without timestamp or pose (yet).
+    pub(crate) fn new(colour: PathBuf, depth: PathBuf) -> Self {
+        Self {
+            colour,
+            depth,
+            timestamp: None,
+            pose: PoseRef::None,
+        }
+    }
+}
+
+/// How the colour image relates to the depth image.
+#[derive(Clone, Copy, Debug, PartialEq, Eq)]
+pub(crate) enum ColourFit {
+    /// Both are registered at the same resolution; a difference is an error.
+    SameSize,
+    /// The colour camera has its own resolution; colour is resampled to the depth resolution.
+    ResizeToDepth,
+}
+
+/// The camera of a sequence and where its values came from (for error messages).
+#[derive(Clone, Debug)]
+pub(crate) struct Camera {
+    pub(crate) intrinsics: Intrinsics,
+    pub(crate) origin: String,
+}
+
+impl Camera {
+    /// Intrinsics read from `path`.
+    pub(crate) fn from_file(intrinsics: Intrinsics, path: &Path) -> Self {
+        Self {
+            intrinsics,
+            origin: path.display().to_string(),
+        }
+    }
+}
+
+/// Which frames of the underlying sequence are used: every `stride`-th, at most `max_frames`.
+#[derive(Clone, Copy, Debug)]
+pub(crate) struct Selection {
+    stride: usize,
+    max_frames: Option<usize>,
+}
+
+impl Selection {
+    /// The selection of `[dataset]`, validated.
+    pub(crate) fn from_config(config: &DatasetConfig, dir: &Path) -> Result<Self> {
+        let bad = |message: &str| DatasetError::BadConfig {
+            path: dir.to_path_buf(),
+            message: message.to_owned(),
+        };
+        let stride = config.stride.unwrap_or(1);
+        if stride == 0 {
+            return Err(bad("stride must be at least 1"));
+        }
+        if config.max_frames == Some(0) {
+            return Err(bad(
+                "max_frames must be at least 1 (leave it out to use every frame)",
+            ));
+        }
+        Ok(Self {
+            stride,
+            max_frames: config.max_frames,
+        })
+    }
+
+    /// The selected items with their index in the underlying sequence.
+    pub(crate) fn apply<T>(&self, items: Vec<T>) -> Vec<(usize, T)> {
+        items
+            .into_iter()
+            .enumerate()
+            .step_by(self.stride)
+            .take(self.max_frames.unwrap_or(usize::MAX))
+            .collect()
+    }
+}
+
+/// The depth scale of `[dataset] depth_scale`, or the layout's `default`.
+pub(crate) fn depth_scale(config: &DatasetConfig, default: f64, dir: &Path) -> Result<f32> {
+    let scale = config.depth_scale.unwrap_or(default);
+    if !(scale.is_finite() && scale > 0.0) {
+        return Err(DatasetError::BadConfig {
+            path: dir.to_path_buf(),
+            message: format!(
+                "depth_scale must be a positive number of raw units per metre, got {scale}"
+            ),
+        });
+    }
+    // Depth images are f32; the scale only needs that precision.
+    Ok(scale as f32)
+}
+
+/// Gives each selected frame the pose of its underlying index from a whole-sequence trajectory.
+pub(crate) fn attach_poses(
+    selected: &mut [(usize, Entry)],
+    poses: &[Pose],
+    trajectory: &Path,
+) -> Result<()> {
+    let needed = selected.last().map_or(0, |(i, _)| i + 1);
+    if poses.len() < needed {
+        return Err(DatasetError::TooFewPoses {
+            path: trajectory.to_path_buf(),
+            poses: poses.len(),
+            needed,
+        });
+    }
+    for (i, entry) in selected.iter_mut() {
+        entry.pose = PoseRef::Known(poses[*i]);
+    }
+    Ok(())
+}
+
+/// The files of `dir` with one of `extensions` (lower case, no dot), in natural order
+/// (`9.png` before `10.png`, as numbered frames are meant).
+///
+/// `hint` says what the layout needs `dir` for, in the error when it is missing.
+pub(crate) fn list_files(dir: &Path, extensions: &[&str], hint: &str) -> Result<Vec<PathBuf>> {
+    if !dir.is_dir() {
+        return Err(DatasetError::MissingFile {
+            path: dir.to_path_buf(),
+            hint: hint.to_owned(),
+        });
+    }
+    let io = |e| DatasetError::io(dir, e);
+    let mut files = Vec::new();
+    for item in std::fs::read_dir(dir).map_err(io)? {
+        let path = item.map_err(io)?.path();
+        let matches = path
+            .extension()
+            .and_then(|e| e.to_str())
+            .is_some_and(|e| extensions.contains(&e.to_ascii_lowercase().as_str()));
+        if matches && path.is_file() {
+            files.push(path);
+        }
+    }
+    files.sort_by_cached_key(|p| natural_key(p));
+    Ok(files)
+}
+
+/// The number at the end of a file stem: `frame000012.jpg` → 12, `00010.png` → 10.
+pub(crate) fn frame_number(path: &Path) -> Option<u64> {
+    let stem = path.file_stem()?.to_str()?;
+    let digits = stem.len() - stem.trim_end_matches(|c: char| c.is_ascii_digit()).len();
+    stem[stem.len() - digits..].parse().ok()
+}
+
+/// Sort key: the stem's non-numeric prefix, then its trailing number, then the whole name.
+fn natural_key(path: &Path) -> (String, Option<u64>, String) {
+    let stem = path
+        .file_stem()
+        .map(|s| s.to_string_lossy().into_owned())
+        .unwrap_or_default();
+    let prefix = stem
+        .trim_end_matches(|c: char| c.is_ascii_digit())
+        .to_owned();
+    let name = path
+        .file_name()
+        .map(|s| s.to_string_lossy().into_owned())
+        .unwrap_or_default();
+    (prefix, frame_number(path), name)
+}
+
+/// Fails with [`DatasetError::MissingFile`] unless `path` is a file; `hint` says who expects it.
+pub(crate) fn require_file(path: &Path, hint: impl FnOnce() -> String) -> Result<()> {
+    if path.is_file() {
+        Ok(())
+    } else {
+        Err(DatasetError::MissingFile {
+            path: path.to_path_buf(),
+            hint: hint(),
+        })
+    }
+}
+
+/// A selected, lazily decoded RGB-D sequence.
+#[derive(Debug)]
+pub(crate) struct Sequence {
+    pub(crate) layout: &'static str,
+    pub(crate) root: PathBuf,
+    /// Selected frames with their index in the underlying sequence.
+    pub(crate) entries: Vec<(usize, Entry)>,
+    pub(crate) camera: Camera,
+    pub(crate) depth_scale: f32,
+    pub(crate) colour_fit: ColourFit,
+}
+
+impl Sequence {
+    /// A sequence of `entries`; [`DatasetError::Empty`] when there is none.
+    pub(crate) fn new(
+        layout: &'static str,
+        root: &Path,
+        entries: Vec<(usize, Entry)>,
+        camera: Camera,
+        depth_scale: f32,
+        colour_fit: ColourFit,
+    ) -> Result<Self> {
+        if entries.is_empty() {
+            return Err(DatasetError::Empty {
+                path: root.to_path_buf(),
+            });
+        }
+        Ok(Self {
+            layout,
+            root: root.to_path_buf(),
+            entries,
+            camera,
+            depth_scale,
+            colour_fit,
+        })
+    }
+
+    pub(crate) fn describe(&self) -> String {
+        format!(
+            "{} folder {} ({} frames)",
+            self.layout,
+            self.root.display(),
+            self.entries.len()
+        )
+    }
+
+    pub(crate) fn has_poses(&self) -> bool {
+        self.entries
+            .iter()
+            .any(|(_, e)| !matches!(e.pose, PoseRef::None))
+    }
+
+    /// Decodes frame `index` of the selection.
+    pub(crate) fn frame(&self, index: usize) -> Result<Frame> {
+        let Some((source_index, entry)) = self.entries.get(index) else {
+            return Err(DatasetError::FrameOutOfRange {
+                path: self.root.clone(),
+                index,
+                len: self.entries.len(),
+            });
+        };
+        let depth = images::read_depth(&entry.depth, self.depth_scale)?;
+        let depth_size = (depth.width(), depth.height());
+        let colour = match self.colour_fit {
+            ColourFit::SameSize => images::read_colour(&entry.colour)?,
+            ColourFit::ResizeToDepth => {
+                images::read_colour_resized(&entry.colour, depth_size.0, depth_size.1)?
+            }
+        };
+        let colour_size = (colour.width(), colour.height());
+        if colour_size != depth_size {
+            return Err(DatasetError::SizeMismatch {
+                colour: entry.colour.clone(),
+                colour_size,
+                depth: entry.depth.clone(),
+                depth_size,
+            });
+        }
+        let k = self.camera.intrinsics;
+        if (k.width, k.height) != depth_size {
+            return Err(DatasetError::IntrinsicsMismatch {
+                image: entry.depth.clone(),
+                image_size: depth_size,
+                origin: self.camera.origin.clone(),
+                intrinsics_size: (k.width, k.height),
+            });
+        }
+        let pose = match &entry.pose {
+            PoseRef::None => None,
+            PoseRef::Known(pose) => Some(*pose),
+            PoseRef::File(path) => Some(crate::scannet::read_pose(path, index)?),
+        };
+        // Layouts without timestamps use the underlying frame index, so that a strided run still
+        // reports where in the recording each frame is.
+        let timestamp = entry.timestamp.unwrap_or(*source_index as f64);
+        Frame::new(index, timestamp, colour, depth, k, pose).map_err(|source| DatasetError::Core {
+            path: entry.depth.clone(),
+            source,
+        })
+    }
+}
+
+/// Implements [`vlem_core::FrameSource`] and the typed `load` for a reader struct with a
+/// `seq: Sequence` field.
+macro_rules! reader_via_sequence {
+    ($reader:ty) => {
+        impl $reader {
+            /// Decodes frame `index` (0-based, after stride and `max_frames`), with the
+            /// dataset's own error type; [`vlem_core::FrameSource::frame`] wraps this error.
+            ///
+            /// # Errors
+            /// A [`DatasetError`](crate::DatasetError) naming the file that is missing,
+            /// unreadable or inconsistent.
+            pub fn load(&self, index: usize) -> crate::Result<vlem_core::Frame> {
+                self.seq.frame(index)
+            }
+        }
+
+        impl vlem_core::FrameSource for $reader {
+            fn describe(&self) -> String {
+                self.seq.describe()
+            }
+
+            fn len(&self) -> usize {
+                self.seq.entries.len()
+            }
+
+            fn intrinsics(&self) -> vlem_core::Intrinsics {
+                self.seq.camera.intrinsics
+            }
+
+            fn has_poses(&self) -> bool {
+                self.seq.has_poses()
+            }
+
+            fn frame(&mut self, index: usize) -> vlem_core::Result<vlem_core::Frame> {
+                Ok(self.seq.frame(index)?)
+            }
+        }
+    };
+}
+pub(crate) use reader_via_sequence;
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn natural_order_sorts_numbers_by_value() {
+        let mut files: Vec<PathBuf> = ["10.png", "9.png", "frame000002.jpg", "frame000001.jpg"]
+            .iter()
+            .map(PathBuf::from)
+            .collect();
+        files.sort_by_cached_key(|p| natural_key(p));
+        assert_eq!(
+            files,
+            ["9.png", "10.png", "frame000001.jpg", "frame000002.jpg"]
+                .iter()
+                .map(PathBuf::from)
+                .collect::<Vec<_>>()
+        );
+        assert_eq!(frame_number(Path::new("depth000123.png")), Some(123));
+        assert_eq!(frame_number(Path::new("depth.png")), None);
+    }
+
+    #[test]
+    fn selection_strides_then_truncates() {
+        let dir = Path::new("/d");
+        let config = DatasetConfig {
+            stride: Some(3),
+            max_frames: Some(2),
+            ..DatasetConfig::default()
+        };
+        let s = Selection::from_config(&config, dir).unwrap();
+        assert_eq!(
+            s.apply((0..10).collect()),
+            vec![(0, 0), (3, 3)],
+            "frame i of the source is underlying frame i * stride"
+        );
+        let zero = DatasetConfig {
+            stride: Some(0),
+            ..DatasetConfig::default()
+        };
+        let err = Selection::from_config(&zero, dir).unwrap_err().to_string();
+        assert_eq!(err, "/d: [dataset] stride must be at least 1");
+    }
+}

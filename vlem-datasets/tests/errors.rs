@@ -1,0 +1,271 @@
+//! Every failure names the file to fix.
+#![allow(clippy::unwrap_used, clippy::expect_used, reason = "tests")]
+
+mod common;
+
+use vlem_core::config::{DatasetConfig, DatasetKind};
+use vlem_datasets::{DatasetError, IclReader, detect_kind};
+
+fn icl_error(dir: &std::path::Path) -> String {
+    IclReader::open(dir, &DatasetConfig::default())
+        .unwrap_err()
+        .to_string()
+}
+
+#[test]
+fn missing_depth_folder() {
+    let tmp = tempfile::tempdir().unwrap();
+    common::write_icl(tmp.path(), 0, 2, false);
+    std::fs::remove_dir_all(tmp.path().join("depth")).unwrap();
+    let err = icl_error(tmp.path());
+    let depth = tmp.path().join("depth");
+    assert!(
+        err.starts_with(&format!("{}: not found", depth.display())),
+        "{err}"
+    );
+    assert!(
+        err.contains("needs depth/ holding 16-bit .png frames"),
+        "{err}"
+    );
+}
+
+#[test]
+fn missing_intrinsics_lists_what_was_looked_for() {
+    let tmp = tempfile::tempdir().unwrap();
+    common::write_icl(tmp.path(), 0, 2, false);
+    std::fs::remove_file(tmp.path().join("intrinsics.json")).unwrap();
+    let err = icl_error(tmp.path());
+    assert!(err.contains("intrinsics.json: not found"), "{err}");
+    assert!(
+        err.contains("intrinsics.json and camera_intrinsic.json"),
+        "{err}"
+    );
+    assert!(err.contains("[dataset] intrinsics"), "{err}");
+
+    let config = DatasetConfig {
+        intrinsics: Some("nowhere.json".into()),
+        ..DatasetConfig::default()
+    };
+    let err = IclReader::open(tmp.path(), &config)
+        .unwrap_err()
+        .to_string();
+    assert!(
+        err.contains("nowhere.json: not found (set by [dataset] intrinsics)"),
+        "{err}"
+    );
+}
+
+#[test]
+fn colour_and_depth_of_different_sizes() {
+    let tmp = tempfile::tempdir().unwrap();
+    common::write_icl(tmp.path(), 0, 2, false);
+    let colour = tmp.path().join("color/00001.png");
+    common::write_rgb(&colour, 5, 3, [0, 0, 0]);
+    let reader = IclReader::open(tmp.path(), &DatasetConfig::default()).unwrap();
+    assert!(reader.load(0).is_ok());
+    let err = reader.load(1).unwrap_err();
+    assert!(matches!(err, DatasetError::SizeMismatch { .. }), "{err:?}");
+    let depth = tmp.path().join("depth/00001.png");
+    assert_eq!(
+        err.to_string(),
+        format!(
+            "colour image {} is 5x3 but depth image {} is 4x3; the two must be registered at the same resolution",
+            colour.display(),
+            depth.display()
+        )
+    );
+}
+
+#[test]
+fn garbage_image_bytes() {
+    let tmp = tempfile::tempdir().unwrap();
+    common::write_icl(tmp.path(), 0, 1, false);
+    let colour = tmp.path().join("color/00000.png");
+    std::fs::write(&colour, b"\x89PNG\r\n\x1a\nthis is not really a png").unwrap();
+    let reader = IclReader::open(tmp.path(), &DatasetConfig::default()).unwrap();
+    let err = reader.load(0).unwrap_err().to_string();
+    assert!(
+        err.starts_with(&format!("{}: cannot decode image", colour.display())),
+        "{err}"
+    );
+}
+
+#[test]
+fn eight_bit_depth_is_refused() {
+    let tmp = tempfile::tempdir().unwrap();
+    common::write_icl(tmp.path(), 0, 1, false);
+    let depth = tmp.path().join("depth/00000.png");
+    image::GrayImage::from_pixel(4, 3, image::Luma([100]))
+        .save(&depth)
+        .unwrap();
+    let reader = IclReader::open(tmp.path(), &DatasetConfig::default()).unwrap();
+    let err = reader.load(0).unwrap_err().to_string();
+    assert_eq!(
+        err,
+        format!(
+            "{}: depth must be a 16-bit single-channel image, this one is L8 (8 bits per pixel)",
+            depth.display()
+        )
+    );
+}
+
+#[test]
+fn non_finite_pose_in_log() {
+    let tmp = tempfile::tempdir().unwrap();
+    common::write_icl(tmp.path(), 0, 2, false);
+    let log = tmp.path().join("trajectory.log");
+    let mut bad = common::translation(0.0, 0.0, 0.0);
+    bad[1][3] = f64::NAN;
+    common::write_log(&log, &[common::translation(0.0, 0.0, 0.0), bad]);
+    let err = icl_error(tmp.path());
+    assert_eq!(
+        err,
+        format!("{}: the pose of frame 1 is not finite", log.display())
+    );
+}
+
+#[test]
+fn too_few_poses() {
+    let tmp = tempfile::tempdir().unwrap();
+    common::write_icl(tmp.path(), 0, 3, false);
+    let log = tmp.path().join("trajectory.log");
+    common::write_log(&log, &[common::translation(0.0, 0.0, 0.0); 2]);
+    let err = icl_error(tmp.path());
+    assert_eq!(
+        err,
+        format!("{}: holds 2 poses but 3 frames need one", log.display())
+    );
+    // Using only the first two frames is fine.
+    let config = DatasetConfig {
+        max_frames: Some(2),
+        ..DatasetConfig::default()
+    };
+    assert!(IclReader::open(tmp.path(), &config).is_ok());
+}
+
+#[test]
+fn truncated_log_names_the_line() {
+    let tmp = tempfile::tempdir().unwrap();
+    common::write_icl(tmp.path(), 0, 1, false);
+    let log = tmp.path().join("trajectory.log");
+    std::fs::write(&log, "0 0 1\n1 0 0 0\n0 1 0 0\n").unwrap();
+    let err = icl_error(tmp.path());
+    assert_eq!(
+        err,
+        format!(
+            "{}:1: frame 0: the file ends after 2 of the 4 matrix rows",
+            log.display()
+        )
+    );
+    std::fs::write(&log, "0 0 1\n1 0 0 0\n0 1 zero 0\n0 0 1 0\n0 0 0 1\n").unwrap();
+    let err = icl_error(tmp.path());
+    assert_eq!(err, format!("{}:3: `zero` is not a number", log.display()));
+}
+
+#[test]
+fn empty_folders() {
+    let tmp = tempfile::tempdir().unwrap();
+    let err = common::open_error(&DatasetConfig::default(), tmp.path());
+    assert_eq!(
+        err,
+        format!("{}: the dataset holds no frames", tmp.path().display())
+    );
+
+    // An ICL layout whose folders hold no frames.
+    std::fs::create_dir(tmp.path().join("color")).unwrap();
+    std::fs::create_dir(tmp.path().join("depth")).unwrap();
+    common::write_intrinsics(
+        &tmp.path().join("intrinsics.json"),
+        4,
+        3,
+        5.0,
+        5.0,
+        1.5,
+        1.0,
+    );
+    let err = common::open_error(&DatasetConfig::default(), tmp.path());
+    assert_eq!(
+        err,
+        format!("{}: the dataset holds no frames", tmp.path().display())
+    );
+}
+
+#[test]
+fn unknown_layout_lists_what_was_looked_for() {
+    let tmp = tempfile::tempdir().unwrap();
+    std::fs::write(tmp.path().join("notes.txt"), "hello").unwrap();
+    std::fs::create_dir(tmp.path().join("pictures")).unwrap();
+    let err = detect_kind(tmp.path()).unwrap_err();
+    assert!(matches!(err, DatasetError::UnknownLayout { .. }), "{err:?}");
+    let err = err.to_string();
+    assert!(
+        err.starts_with(&format!("{}: unknown dataset layout", tmp.path().display())),
+        "{err}"
+    );
+    for looked_for in [
+        "rgb.txt and depth.txt",
+        "results/",
+        "intrinsic/",
+        "color/ or image/",
+        "rgbd.match",
+    ] {
+        assert!(err.contains(looked_for), "{err}");
+    }
+    assert!(err.ends_with("found notes.txt, pictures/"), "{err}");
+
+    let err = detect_kind(&tmp.path().join("absent"))
+        .unwrap_err()
+        .to_string();
+    assert!(
+        err.ends_with("absent: not found (the dataset folder does not exist)"),
+        "{err}"
+    );
+}
+
+#[test]
+fn colour_and_depth_counts_differ() {
+    let tmp = tempfile::tempdir().unwrap();
+    common::write_icl(tmp.path(), 0, 3, false);
+    std::fs::remove_file(tmp.path().join("depth/00001.png")).unwrap();
+    let err = icl_error(tmp.path());
+    assert!(err.contains("holds 3 colour images but"), "{err}");
+    assert!(
+        err.contains("holds 2 depth images; add an rgbd.match"),
+        "{err}"
+    );
+}
+
+#[test]
+fn bad_config_values() {
+    let tmp = tempfile::tempdir().unwrap();
+    common::write_icl(tmp.path(), 0, 1, false);
+    let config = DatasetConfig {
+        depth_scale: Some(0.0),
+        kind: DatasetKind::Icl,
+        ..DatasetConfig::default()
+    };
+    let err = common::open_error(&config, tmp.path());
+    assert!(
+        err.ends_with(
+            "[dataset] depth_scale must be a positive number of raw units per metre, got 0"
+        ),
+        "{err}"
+    );
+}
+
+#[test]
+fn match_file_naming_a_missing_image() {
+    let tmp = tempfile::tempdir().unwrap();
+    common::write_icl(tmp.path(), 0, 1, false);
+    std::fs::write(
+        tmp.path().join("rgbd.match"),
+        "depth/00000.png color/00007.png\n",
+    )
+    .unwrap();
+    let err = icl_error(tmp.path());
+    assert!(
+        err.contains("color/00007.png: not found (listed in"),
+        "{err}"
+    );
+    assert!(err.ends_with("rgbd.match line 1)"), "{err}");
+}
