@@ -1,0 +1,18 @@
+//! Links every plugin crate into the binary and names the cargo feature of each optional one.
+//!
+//! `inventory` registrations live in the crates that define them; a crate that is a dependency but
+//! never referenced is not linked and its registrations vanish without a word. Every plugin crate
+//! the binary depends on is therefore referenced here, and `tests/cli.rs` checks the names that
+//! `vlem plugins` lists.
+//!
+//! Adding a plugin: add the crate as an optional dependency with a feature of the same name in the
+//! root `Cargo.toml`, reference it below under that feature, and add a `feature_hint!` line so a
+//! binary built without it tells the user which feature to enable.
+
+use vlem_maps as _;
+#[cfg(feature = "colour-names")]
+use vlem_plugin_colour_names as _;
+use vlem_trackers as _;
+
+vlem_core::feature_hint!(Encoder, "colour-names", "colour-names");
+vlem_core::feature_hint!(Map, "point-cloud", "point-cloud");
