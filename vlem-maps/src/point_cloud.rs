@@ -402,88 +402,149 @@ impl PointCloudMap {
         fresh.len()
     }
 
-    /// Merges points per voxel, growing the voxel until the budget holds. Returns points removed.
+    /// Merges points per voxel, with the finest voxel size (within 5 %) that meets the budget.
+    /// Returns the number of points removed.
     fn enforce_budget(&mut self, footprint: f32) -> usize {
         let budget = self.config.max_points;
         let before = self.positions.len();
         if before <= budget {
             return 0;
         }
-        // Start at the current resolution, or at the pixel footprint of this frame (finer voxels
-        // would merge nothing).
-        let mut voxel = self.voxel_size.max(footprint).max(1e-4);
-        loop {
-            let mut keyed: Vec<(u64, u32)> = self
-                .positions
-                .par_iter()
-                .enumerate()
-                .map(|(i, p)| (voxel_key(p, voxel), i as u32))
-                .collect();
-            keyed.par_sort_unstable();
-            let occupied = 1 + keyed.windows(2).filter(|w| w[0].0 != w[1].0).count();
-            if occupied <= budget {
-                self.merge_groups(&keyed, occupied);
-                self.voxel_size = voxel;
-                return before - self.positions.len();
+        // Never finer than the density already established (the map's density only falls), and
+        // not much finer than this frame's pixel footprint (finer voxels would merge nothing).
+        let mut lo = self.voxel_size.max(footprint * 0.25).max(1e-4);
+        let mut groups = VoxelGroups::new(&self.positions, lo);
+        if groups.count > budget {
+            // Grow until the budget holds; on surfaces the count falls with the voxel area.
+            let mut hi = lo;
+            let found = loop {
+                hi *= (groups.count as f32 / budget as f32).sqrt().max(1.1);
+                let g = VoxelGroups::new(&self.positions, hi);
+                if g.count <= budget {
+                    break g;
+                }
+                lo = hi;
+                groups = g;
+            };
+            // Bisect geometrically between the last size that failed and the first that held.
+            groups = found;
+            while hi / lo > 1.05 {
+                let mid = (lo * hi).sqrt();
+                let g = VoxelGroups::new(&self.positions, mid);
+                if g.count <= budget {
+                    hi = mid;
+                    groups = g;
+                } else {
+                    lo = mid;
+                }
             }
-            // Surfaces: the occupied count falls with the square of the voxel size.
-            let ratio = (occupied as f32 / budget as f32).sqrt();
-            voxel *= ratio.max(1.1);
+            lo = hi;
         }
+        self.voxel_size = lo;
+        self.merge(&groups);
+        before - self.positions.len()
     }
 
-    fn merge_groups(&mut self, keyed: &[(u64, u32)], groups: usize) {
-        let mut starts = Vec::with_capacity(groups + 1);
-        starts.push(0usize);
-        starts.extend((1..keyed.len()).filter(|&i| keyed[i].0 != keyed[i - 1].0));
-        starts.push(keyed.len());
-        let members = |g: usize| {
-            keyed[starts[g]..starts[g + 1]]
-                .iter()
-                .map(|(_, i)| *i as usize)
-        };
-        let (positions, colours): (Vec<[f32; 3]>, Vec<[u8; 3]>) = (0..groups)
-            .into_par_iter()
-            .map(|g| {
-                let (mut p, mut c, mut n) = ([0.0f64; 3], [0u32; 3], 0u32);
-                for i in members(g) {
+    /// Replaces every voxel group of two or more points by one point (mean position and colour,
+    /// renormalised mean embedding) in the slot of its first member, then removes the other members
+    /// by moving points from the end into their slots. The cost is proportional to the points
+    /// merged, not to the map size.
+    fn merge(&mut self, groups: &VoxelGroups) {
+        let dim = self.dim;
+        let multi: Vec<&[(u64, u32)]> = groups.runs().filter(|run| run.len() > 1).collect();
+        let merged_points: Vec<(usize, [f32; 3], [u8; 3])> = multi
+            .par_iter()
+            .map(|run| {
+                let (mut p, mut c) = ([0.0f64; 3], [0u32; 3]);
+                for &(_, i) in run.iter() {
                     for k in 0..3 {
-                        p[k] += f64::from(self.positions[i][k]);
-                        c[k] += u32::from(self.colours[i][k]);
+                        p[k] += f64::from(self.positions[i as usize][k]);
+                        c[k] += u32::from(self.colours[i as usize][k]);
                     }
-                    n += 1;
                 }
-                let nf = f64::from(n);
+                let n = run.len();
+                let target = run.iter().map(|&(_, i)| i as usize).min().unwrap_or(0);
                 (
-                    [(p[0] / nf) as f32, (p[1] / nf) as f32, (p[2] / nf) as f32],
-                    [(c[0] / n) as u8, (c[1] / n) as u8, (c[2] / n) as u8],
+                    target,
+                    p.map(|x| (x / n as f64) as f32),
+                    c.map(|x| (x / n as u32) as u8),
                 )
             })
-            .unzip();
-        let dim = self.dim;
+            .collect();
+        let mut merged_embeddings = vec![0.0f32; multi.len() * dim];
         if dim > 0 {
-            let mut embeddings = vec![0.0f32; groups * dim];
-            embeddings
+            merged_embeddings
                 .par_chunks_exact_mut(dim)
-                .enumerate()
-                .for_each(|(g, row)| {
-                    let mut first = None;
-                    for i in members(g) {
-                        let e = &self.embeddings[i * dim..(i + 1) * dim];
-                        first.get_or_insert(i);
+                .zip(multi.par_iter())
+                .for_each(|(row, run)| {
+                    for &(_, i) in run.iter() {
+                        let e = &self.embeddings[i as usize * dim..(i as usize + 1) * dim];
                         row.iter_mut().zip(e).for_each(|(a, b)| *a += b);
                     }
                     // Members that cancel out: keep the first one's embedding.
-                    if !normalise(row)
-                        && let Some(i) = first
-                    {
+                    if !normalise(row) {
+                        let i = run[0].1 as usize;
                         row.copy_from_slice(&self.embeddings[i * dim..(i + 1) * dim]);
                     }
                 });
-            self.embeddings = embeddings;
         }
-        self.positions = positions;
-        self.colours = colours;
+        let mut dead = Vec::with_capacity(self.positions.len() - groups.count);
+        for (g, (target, p, c)) in merged_points.into_iter().enumerate() {
+            self.positions[target] = p;
+            self.colours[target] = c;
+            if dim > 0 {
+                self.embeddings[target * dim..(target + 1) * dim]
+                    .copy_from_slice(&merged_embeddings[g * dim..(g + 1) * dim]);
+            }
+            dead.extend(
+                multi[g]
+                    .iter()
+                    .map(|&(_, i)| i as usize)
+                    .filter(|&i| i != target),
+            );
+        }
+        // Descending, so the point moved into a dead slot is always a live one.
+        dead.par_sort_unstable_by(|a, b| b.cmp(a));
+        for d in dead {
+            let last = self.positions.len() - 1;
+            self.positions.swap_remove(d);
+            self.colours.swap_remove(d);
+            if dim > 0 {
+                if d != last {
+                    self.embeddings
+                        .copy_within(last * dim..(last + 1) * dim, d * dim);
+                }
+                self.embeddings.truncate(last * dim);
+            }
+        }
+    }
+}
+
+/// Points sorted by voxel key, and the number of occupied voxels.
+struct VoxelGroups {
+    keyed: Vec<(u64, u32)>,
+    count: usize,
+}
+
+impl VoxelGroups {
+    fn new(positions: &[[f32; 3]], voxel: f32) -> Self {
+        let mut keyed: Vec<(u64, u32)> = positions
+            .par_iter()
+            .enumerate()
+            .map(|(i, p)| (voxel_key(p, voxel), i as u32))
+            .collect();
+        keyed.par_sort_unstable();
+        let count = if keyed.is_empty() {
+            0
+        } else {
+            1 + keyed.windows(2).filter(|w| w[0].0 != w[1].0).count()
+        };
+        Self { keyed, count }
+    }
+
+    /// The runs of points that share a voxel.
+    fn runs(&self) -> impl Iterator<Item = &[(u64, u32)]> {
+        self.keyed.chunk_by(|a, b| a.0 == b.0)
     }
 }
 
@@ -744,6 +805,39 @@ mod tests {
             let norm = row.iter().map(|x| x * x).sum::<f32>().sqrt();
             assert!((norm - 1.0).abs() < 1e-5);
         }
+    }
+
+    #[test]
+    fn downsampling_keeps_close_to_the_budget() {
+        use rand::{Rng, SeedableRng};
+        let mut rng = rand::rngs::StdRng::seed_from_u64(3);
+        let n = 20_000;
+        let positions: Vec<[f32; 3]> = (0..n)
+            .map(|_| [rng.random_range(0.0..1.0), rng.random_range(0.0..1.0), 2.0])
+            .collect();
+        let mut embeddings = vec![0.0; n * DIM];
+        embeddings.iter_mut().step_by(DIM).for_each(|x| *x = 1.0);
+        let snapshot = MapSnapshot {
+            map_kind: NAME.into(),
+            dim: DIM,
+            positions,
+            colours: vec![[0, 0, 0]; n],
+            embeddings,
+            metadata: MapMetadata::default(),
+        };
+        let mut m = map(PointCloudConfig {
+            max_points: 5_000,
+            ..PointCloudConfig::default()
+        });
+        m.restore(snapshot).unwrap();
+        // The finest voxel that meets the budget, not one far coarser.
+        assert!(
+            (4_000..=5_000).contains(&m.len()),
+            "{} points for a budget of 5000",
+            m.len()
+        );
+        assert_eq!(m.embeddings().len(), m.len() * DIM);
+        assert!(m.voxel_size() > 0.0);
     }
 
     #[test]
