@@ -16,7 +16,7 @@ use nalgebra::Matrix4;
 use vlem_core::Pose;
 use vlem_core::config::DatasetConfig;
 
-use crate::calibration::{REPLICA_DEFAULT_INTRINSICS, read_open3d_intrinsics};
+use crate::calibration::REPLICA_DEFAULT_INTRINSICS;
 use crate::error::Result;
 use crate::sequence::{
     Camera, ColourFit, Entry, Selection, Sequence, attach_poses, depth_scale, list_files,
@@ -43,7 +43,7 @@ impl ReplicaReader {
     /// [`DatasetError::MissingFile`](crate::DatasetError::MissingFile) for a missing `results/` or depth file of a colour frame,
     /// [`DatasetError::Parse`](crate::DatasetError::Parse) / [`DatasetError::NonFinitePose`](crate::DatasetError::NonFinitePose) / [`DatasetError::NotRotation`](crate::DatasetError::NotRotation)
     /// for a bad `traj.txt` line, [`DatasetError::TooFewPoses`](crate::DatasetError::TooFewPoses), the errors of
-    /// [`read_open3d_intrinsics`], [`DatasetError::BadConfig`](crate::DatasetError::BadConfig) and [`DatasetError::Empty`](crate::DatasetError::Empty).
+    /// [`read_open3d_intrinsics`](crate::read_open3d_intrinsics), [`DatasetError::BadConfig`](crate::DatasetError::BadConfig) and [`DatasetError::Empty`](crate::DatasetError::Empty).
     pub fn open(dir: &Path, config: &DatasetConfig) -> Result<Self> {
         let selection = Selection::from_config(config, dir)?;
         let scale = depth_scale(config, REPLICA_DEPTH_SCALE, dir)?;
@@ -52,18 +52,12 @@ impl ReplicaReader {
         if trajectory.is_file() {
             attach_poses(&mut selected, &read_trajectory(&trajectory)?, &trajectory)?;
         }
-        let camera = match &config.intrinsics {
-            Some(path) => {
-                let path = dir.join(path);
-                Camera::from_file(read_open3d_intrinsics(&path)?, &path)
-            }
-            None => Camera {
-                intrinsics: REPLICA_DEFAULT_INTRINSICS,
-                origin:
-                    "the NICE-SLAM Replica default 600/600/599.5/339.5; set [dataset] intrinsics"
-                        .to_owned(),
-            },
-        };
+        let camera = Camera::from_config_or_default(
+            config,
+            dir,
+            REPLICA_DEFAULT_INTRINSICS,
+            "the NICE-SLAM Replica default 600/600/599.5/339.5; set [dataset] intrinsics",
+        )?;
         let seq = Sequence::new(
             "Replica (NICE-SLAM)",
             dir,

@@ -70,6 +70,26 @@ impl Camera {
             origin: path.display().to_string(),
         }
     }
+
+    /// The `[dataset] intrinsics` file (relative to `dir`) if the config names one, else the
+    /// layout's documented `default`, described by `origin` in error messages.
+    pub(crate) fn from_config_or_default(
+        config: &DatasetConfig,
+        dir: &Path,
+        default: Intrinsics,
+        origin: &str,
+    ) -> Result<Self> {
+        Ok(match &config.intrinsics {
+            Some(path) => {
+                let path = dir.join(path);
+                Self::from_file(crate::calibration::read_open3d_intrinsics(&path)?, &path)
+            }
+            None => Self {
+                intrinsics: default,
+                origin: origin.to_owned(),
+            },
+        })
+    }
 }
 
 /// Which frames of the underlying sequence are used: every `stride`-th, at most `max_frames`.

@@ -20,7 +20,7 @@ use std::path::{Path, PathBuf};
 use vlem_core::Pose;
 use vlem_core::config::DatasetConfig;
 
-use crate::calibration::{TUM_DEFAULT_INTRINSICS, read_open3d_intrinsics};
+use crate::calibration::TUM_DEFAULT_INTRINSICS;
 use crate::error::{DatasetError, Result};
 use crate::sequence::{
     Camera, ColourFit, Entry, PoseRef, Selection, Sequence, depth_scale, reader_via_sequence,
@@ -57,7 +57,7 @@ impl TumReader {
     /// # Errors
     /// [`DatasetError::MissingFile`] for a missing list or listed image,
     /// [`DatasetError::Parse`] for a malformed line, the errors of [`read_tum`] and
-    /// [`read_open3d_intrinsics`], [`DatasetError::NoPoseNear`] for a frame without ground truth,
+    /// [`read_open3d_intrinsics`](crate::read_open3d_intrinsics), [`DatasetError::NoPoseNear`] for a frame without ground truth,
     /// [`DatasetError::BadConfig`] and [`DatasetError::Empty`].
     pub fn open(dir: &Path, config: &DatasetConfig) -> Result<Self> {
         let selection = Selection::from_config(config, dir)?;
@@ -76,17 +76,12 @@ impl TumReader {
         if groundtruth.is_file() {
             attach_groundtruth(&mut selected, &groundtruth)?;
         }
-        let camera = match &config.intrinsics {
-            Some(path) => {
-                let path = dir.join(path);
-                Camera::from_file(read_open3d_intrinsics(&path)?, &path)
-            }
-            None => Camera {
-                intrinsics: TUM_DEFAULT_INTRINSICS,
-                origin: "the TUM RGB-D default 525/525/319.5/239.5; set [dataset] intrinsics"
-                    .to_owned(),
-            },
-        };
+        let camera = Camera::from_config_or_default(
+            config,
+            dir,
+            TUM_DEFAULT_INTRINSICS,
+            "the TUM RGB-D default 525/525/319.5/239.5; set [dataset] intrinsics",
+        )?;
         let seq = Sequence::new(
             "TUM RGB-D",
             dir,
