@@ -74,8 +74,19 @@ enum Command {
     },
 }
 
-fn main() -> Result<()> {
-    match Cli::parse().command {
+fn main() -> std::process::ExitCode {
+    match execute(Cli::parse().command) {
+        Ok(()) => std::process::ExitCode::SUCCESS,
+        Err(e) => {
+            // The whole cause chain on one line, without a backtrace: these are user errors.
+            eprintln!("error: {e:#}");
+            std::process::ExitCode::FAILURE
+        }
+    }
+}
+
+fn execute(command: Command) -> Result<()> {
+    match command {
         Command::Run {
             config,
             dataset,
@@ -139,6 +150,8 @@ fn run(
     // Built before mapping so a bad [query.segmenter] fails at start-up, not after the run.
     let segmenter = Registry::global()?.build_segmenter(&config.query.segmenter, &ctx)?;
     let mut source = vlem_datasets::open(&config.dataset, &dataset_dir)?;
+    // Before mapping, so an unwritable output folder fails now rather than after a long run.
+    std::fs::create_dir_all(out).with_context(|| format!("cannot create {}", out.display()))?;
     let total = source.len();
     eprintln!(
         "vlem: {} frames from {}; tracker `{}`, encoder `{}`, map `{}`",
@@ -180,7 +193,6 @@ fn run(
     let report = pipeline.run(source.as_mut(), None, &on_progress)?;
     bar.finish_and_clear();
 
-    std::fs::create_dir_all(out).with_context(|| format!("cannot create {}", out.display()))?;
     let trajectory: Vec<(f64, vlem_core::Pose)> = report
         .trajectory
         .iter()
