@@ -354,18 +354,19 @@ fn answer_queries(
             encoder.dim()
         );
     }
-    let mut scores = QueryScores {
-        queries: texts.to_vec(),
-        scores: Vec::with_capacity(texts.len()),
-    };
-    for text in texts {
+    let score = |text: &str| -> Result<Vec<f32>> {
         let e = encoder
             .encode_text(text)
             .with_context(|| format!("cannot embed the query \"{text}\""))?;
         let mut s = Vec::new();
         vlem_core::query::normalised_similarity(&snapshot.embeddings, snapshot.dim, &e, &mut s)?;
-        scores.scores.push(s);
-    }
+        Ok(s)
+    };
+    let scores = QueryScores {
+        queries: texts.to_vec(),
+        scores: texts.iter().map(|t| score(t)).collect::<Result<_>>()?,
+        baseline: segmenter.baseline_query().map(score).transpose()?,
+    };
     let sets = segmenter.segment(&snapshot.positions, &scores)?;
     for (q, text) in texts.iter().enumerate() {
         let s = &scores.scores[q];

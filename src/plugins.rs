@@ -16,3 +16,5 @@ use vlem_trackers as _;
 
 vlem_core::feature_hint!(Encoder, "colour-names", "colour-names");
 vlem_core::feature_hint!(Map, "point-cloud", "point-cloud");
+vlem_core::feature_hint!(Map, "voxel", "voxel");
+vlem_core::feature_hint!(Map, "segment", "segment");

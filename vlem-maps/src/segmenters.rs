@@ -100,6 +100,7 @@ mod tests {
         let scores = QueryScores {
             queries: vec!["a".into(), "b".into()],
             scores: vec![vec![0.2, 0.5, 0.9], vec![0.0, 0.0, 0.1]],
+            baseline: None,
         };
         let sets = seg.segment(&[[0.0; 3]; 3], &scores).unwrap();
         assert_eq!(sets[0].indices, vec![1, 2]);

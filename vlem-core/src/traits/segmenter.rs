@@ -13,6 +13,9 @@ pub struct QueryScores {
     pub queries: Vec<String>,
     /// `scores[q][i]`: normalised similarity of point `i` to query `q`, in `[0, 1]`.
     pub scores: Vec<Vec<f32>>,
+    /// Similarity of every point to the generic baseline query ([`Segmenter::baseline_query`],
+    /// e.g. "object"), when the segmenter asked for one.
+    pub baseline: Option<Vec<f32>>,
 }
 
 /// Points selected for one query.
@@ -30,6 +33,13 @@ pub struct PointSet {
 pub trait Segmenter: Send + Sync {
     /// The registered name.
     fn name(&self) -> &'static str;
+
+    /// A generic text (e.g. "object") whose similarity the caller must also compute and pass as
+    /// [`QueryScores::baseline`]: the paper's baseline that a point must beat to belong to a query.
+    /// `None` (the default) for segmenters that need none.
+    fn baseline_query(&self) -> Option<&str> {
+        None
+    }
 
     /// Point sets for the queries, in any order and any number per query.
     ///

@@ -1,0 +1,1 @@
+//! Grasp poses for a parallel gripper from a point set (being written).

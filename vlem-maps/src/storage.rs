@@ -1,0 +1,329 @@
+//! Embedding tables in `f32` or `f16`, shared by every map.
+//!
+//! `f16` halves the bytes per stored value; embeddings are unit vectors whose entries are far
+//! from f16's limits, so the ranking of points for a query is kept (tested below). Arithmetic always
+//! happens in `f32`: rows are widened into a scratch buffer, updated and narrowed back.
+
+use half::f16;
+use rayon::prelude::*;
+use serde::Deserialize;
+use vlem_core::embeddings::normalise;
+use vlem_core::query::dot;
+use vlem_core::{CoreError, Result};
+
+/// Storage type of the embeddings of a map (`precision = "f32"` or `"f16"` in `[map]`).
+#[derive(Clone, Copy, Debug, Default, Deserialize, PartialEq, Eq)]
+#[serde(rename_all = "lowercase")]
+pub enum Precision {
+    /// 4 bytes per value (default).
+    #[default]
+    F32,
+    /// 2 bytes per value.
+    F16,
+}
+
+#[derive(Clone, Debug, PartialEq)]
+enum Values {
+    F32(Vec<f32>),
+    F16(Vec<f16>),
+}
+
+/// A row-major `rows x dim` table of embeddings.
+#[derive(Clone, Debug, PartialEq)]
+pub struct EmbeddingStore {
+    dim: usize,
+    values: Values,
+}
+
+/// Below this many rows, work stays on one thread.
+const PARALLEL_MIN_ROWS: usize = 4096;
+
+impl EmbeddingStore {
+    /// An empty table.
+    pub fn new(dim: usize, precision: Precision) -> Self {
+        let values = match precision {
+            Precision::F32 => Values::F32(Vec::new()),
+            Precision::F16 => Values::F16(Vec::new()),
+        };
+        Self { dim, values }
+    }
+
+    /// A table holding `values` (`rows x dim`, row-major), narrowed to `precision`.
+    pub fn from_f32(dim: usize, precision: Precision, values: Vec<f32>) -> Self {
+        let values = match precision {
+            Precision::F32 => Values::F32(values),
+            Precision::F16 => Values::F16(values.iter().map(|&x| f16::from_f32(x)).collect()),
+        };
+        Self { dim, values }
+    }
+
+    /// Embedding dimension.
+    pub fn dim(&self) -> usize {
+        self.dim
+    }
+
+    /// Storage type.
+    pub fn precision(&self) -> Precision {
+        match self.values {
+            Values::F32(_) => Precision::F32,
+            Values::F16(_) => Precision::F16,
+        }
+    }
+
+    fn value_count(&self) -> usize {
+        match &self.values {
+            Values::F32(v) => v.len(),
+            Values::F16(v) => v.len(),
+        }
+    }
+
+    /// Number of rows (0 for a dimension-0 table).
+    pub fn rows(&self) -> usize {
+        if self.dim == 0 { 0 } else { self.value_count() / self.dim }
+    }
+
+    /// Bytes allocated for the values.
+    pub fn memory_bytes(&self) -> usize {
+        match &self.values {
+            Values::F32(v) => v.capacity() * 4,
+            Values::F16(v) => v.capacity() * 2,
+        }
+    }
+
+    /// Appends a row (length `dim`).
+    pub fn push(&mut self, row: &[f32]) {
+        match &mut self.values {
+            Values::F32(v) => v.extend_from_slice(row),
+            Values::F16(v) => v.extend(row.iter().map(|&x| f16::from_f32(x))),
+        }
+    }
+
+    /// Appends `rows` zero rows (to be filled with [`EmbeddingStore::par_update_rows_from`]).
+    pub fn grow(&mut self, rows: usize) {
+        let n = self.value_count() + rows * self.dim;
+        match &mut self.values {
+            Values::F32(v) => v.resize(n, 0.0),
+            Values::F16(v) => v.resize(n, f16::ZERO),
+        }
+    }
+
+    /// Copies row `i` into `out` as `f32`.
+    pub fn row_into(&self, i: usize, out: &mut [f32]) {
+        let d = self.dim;
+        match &self.values {
+            Values::F32(v) => out.copy_from_slice(&v[i * d..(i + 1) * d]),
+            Values::F16(v) => {
+                for (o, x) in out.iter_mut().zip(&v[i * d..(i + 1) * d]) {
+                    *o = x.to_f32();
+                }
+            }
+        }
+    }
+
+    /// Overwrites row `i`.
+    pub fn set_row(&mut self, i: usize, row: &[f32]) {
+        let d = self.dim;
+        match &mut self.values {
+            Values::F32(v) => v[i * d..(i + 1) * d].copy_from_slice(row),
+            Values::F16(v) => {
+                for (o, x) in v[i * d..(i + 1) * d].iter_mut().zip(row) {
+                    *o = f16::from_f32(*x);
+                }
+            }
+        }
+    }
+
+    /// Calls `update(row_index, row)` for every row from `first` on, in parallel, with the row
+    /// widened to `f32`; writes the row back when `update` returns true.
+    pub fn par_update_rows_from<F>(&mut self, first: usize, update: F)
+    where
+        F: Fn(usize, &mut [f32]) -> bool + Sync,
+    {
+        let d = self.dim;
+        if d == 0 {
+            return;
+        }
+        match &mut self.values {
+            Values::F32(v) => v[first * d..]
+                .par_chunks_exact_mut(d)
+                .enumerate()
+                .with_min_len(256)
+                .for_each(|(i, row)| {
+                    update(first + i, row);
+                }),
+            Values::F16(v) => v[first * d..]
+                .par_chunks_exact_mut(d)
+                .enumerate()
+                .with_min_len(256)
+                .for_each_init(
+                    || vec![0.0f32; d],
+                    |scratch, (i, row)| {
+                        for (s, x) in scratch.iter_mut().zip(row.iter()) {
+                            *s = x.to_f32();
+                        }
+                        if update(first + i, scratch) {
+                            for (x, s) in row.iter_mut().zip(scratch.iter()) {
+                                *x = f16::from_f32(*s);
+                            }
+                        }
+                    },
+                ),
+        }
+    }
+
+    /// Moves the last row into row `i` and drops the last row (order is not kept).
+    pub fn swap_remove(&mut self, i: usize) {
+        let d = self.dim;
+        let last = self.rows() - 1;
+        match &mut self.values {
+            Values::F32(v) => {
+                v.copy_within(last * d..(last + 1) * d, i * d);
+                v.truncate(last * d);
+            }
+            Values::F16(v) => {
+                v.copy_within(last * d..(last + 1) * d, i * d);
+                v.truncate(last * d);
+            }
+        }
+    }
+
+    /// Keeps the first `rows` rows.
+    pub fn truncate(&mut self, rows: usize) {
+        let n = rows * self.dim;
+        match &mut self.values {
+            Values::F32(v) => v.truncate(n),
+            Values::F16(v) => v.truncate(n),
+        }
+    }
+
+    /// All values widened to `f32` (for snapshots).
+    pub fn to_f32(&self) -> Vec<f32> {
+        match &self.values {
+            Values::F32(v) => v.clone(),
+            Values::F16(v) => v.iter().map(|x| x.to_f32()).collect(),
+        }
+    }
+
+    /// The paper's normalised similarity `(text . e + 1) / 2` of every row, into `out`.
+    ///
+    /// # Errors
+    /// [`CoreError::DimensionMismatch`] when `text` is not `dim` long.
+    pub fn similarity(&self, text: &[f32], out: &mut Vec<f32>) -> Result<()> {
+        match &self.values {
+            Values::F32(v) => vlem_core::query::normalised_similarity(v, self.dim, text, out),
+            Values::F16(v) => {
+                if text.len() != self.dim || self.dim == 0 {
+                    return Err(CoreError::DimensionMismatch {
+                        what: "query embedding".into(),
+                        expected: self.dim,
+                        actual: text.len(),
+                    });
+                }
+                let d = self.dim;
+                out.clear();
+                out.resize(v.len() / d, 0.0);
+                let score = |(s, row): (&mut f32, &[f16])| {
+                    let mut wide = [0.0f32; 64];
+                    let mut acc = 0.0;
+                    for (chunk, t) in row.chunks(64).zip(text.chunks(64)) {
+                        for (w, x) in wide.iter_mut().zip(chunk) {
+                            *w = x.to_f32();
+                        }
+                        acc += dot(&wide[..chunk.len()], t);
+                    }
+                    *s = (acc + 1.0) * 0.5;
+                };
+                if out.len() >= PARALLEL_MIN_ROWS {
+                    out.par_iter_mut()
+                        .zip(v.par_chunks_exact(d))
+                        .with_min_len(1024)
+                        .for_each(score);
+                } else {
+                    out.iter_mut().zip(v.chunks_exact(d)).for_each(score);
+                }
+                Ok(())
+            }
+        }
+    }
+}
+
+/// `e_M := (1 - w) e_P + w e_M`, renormalised; falls back to `e_P` when the two cancel out.
+pub fn fuse_into(map: &mut [f32], observed: &[f32], map_weight: f32) {
+    for (m, p) in map.iter_mut().zip(observed) {
+        *m = (1.0 - map_weight) * p + map_weight * *m;
+    }
+    if !normalise(map) {
+        map.copy_from_slice(observed);
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use rand::{Rng, SeedableRng};
+
+    fn random_rows(n: usize, dim: usize, seed: u64) -> Vec<f32> {
+        let mut rng = rand::rngs::StdRng::seed_from_u64(seed);
+        let mut v: Vec<f32> = (0..n * dim).map(|_| rng.random_range(-1.0..1.0)).collect();
+        v.chunks_exact_mut(dim).for_each(|r| {
+            normalise(r);
+        });
+        v
+    }
+
+    #[test]
+    fn f16_keeps_the_ranking_of_f32_and_halves_the_bytes() {
+        let (n, dim) = (5000, 512);
+        let rows = random_rows(n, dim, 1);
+        let text = random_rows(1, dim, 2);
+        let full = EmbeddingStore::from_f32(dim, Precision::F32, rows.clone());
+        let half = EmbeddingStore::from_f32(dim, Precision::F16, rows);
+        let (mut a, mut b) = (Vec::new(), Vec::new());
+        full.similarity(&text, &mut a).unwrap();
+        half.similarity(&text, &mut b).unwrap();
+        // Rounding a unit vector to f16 moves each entry by at most 2^-11 of itself, so a unit
+        // query's dot product moves by at most 2^-11 and a score by 2^-12. Any two points whose
+        // f32 scores differ by more than twice that keep their order; closer ones are ties.
+        let tie = 2.0 * 2f32.powi(-12);
+        let mut order: Vec<usize> = (0..n).collect();
+        order.sort_by(|&i, &j| a[j].total_cmp(&a[i]));
+        for (k, &i) in order.iter().enumerate() {
+            for &j in &order[k + 1..] {
+                if a[i] - a[j] > tie {
+                    assert!(b[i] > b[j], "points {i} and {j} swap places at f16");
+                }
+            }
+        }
+        assert!(a.iter().zip(&b).all(|(x, y)| (x - y).abs() <= 2f32.powi(-12) + 1e-6));
+        assert_eq!(half.memory_bytes() * 2, full.memory_bytes());
+    }
+
+    #[test]
+    fn updates_swap_remove_and_fusion_work_in_both_precisions() {
+        for precision in [Precision::F32, Precision::F16] {
+            let mut s = EmbeddingStore::new(2, precision);
+            s.push(&[1.0, 0.0]);
+            s.push(&[0.0, 1.0]);
+            s.grow(1);
+            s.par_update_rows_from(2, |i, row| {
+                assert_eq!(i, 2);
+                row.copy_from_slice(&[0.6, 0.8]);
+                true
+            });
+            s.par_update_rows_from(0, |i, row| {
+                if i == 0 {
+                    fuse_into(row, &[0.0, 1.0], 0.5);
+                }
+                i == 0
+            });
+            let mut row = [0.0; 2];
+            s.row_into(0, &mut row);
+            assert!((row[0] - 0.7071).abs() < 1e-3 && (row[1] - 0.7071).abs() < 1e-3);
+            s.swap_remove(0);
+            assert_eq!(s.rows(), 2);
+            s.row_into(0, &mut row);
+            assert!((row[0] - 0.6).abs() < 1e-3, "{precision:?}: {row:?}");
+            assert!(s.similarity(&[1.0], &mut Vec::new()).is_err());
+        }
+    }
+}

@@ -1,0 +1,1 @@
+//! `voxel`: a RayFronts-style semantic voxel map (being written).
