@@ -25,6 +25,7 @@ use vlem_core::{
 };
 
 use crate::error::MapError;
+use crate::storage::{EmbeddingStore, Precision, fuse_into};
 
 /// The registered name.
 pub const NAME: &str = "point-cloud";
@@ -52,6 +53,9 @@ pub struct PointCloudConfig {
     /// Use every n-th pixel in both directions; default 1 (every pixel, as in the paper).
     #[serde(default = "default_pixel_stride")]
     pub pixel_stride: u32,
+    /// Embedding storage, `"f32"` (default) or `"f16"` (half the bytes, same query ranking).
+    #[serde(default)]
+    pub precision: Precision,
 }
 
 fn default_max_points() -> usize {
@@ -79,6 +83,7 @@ impl Default for PointCloudConfig {
             map_weight: default_map_weight(),
             max_depth: default_max_depth(),
             pixel_stride: default_pixel_stride(),
+            precision: Precision::default(),
         }
     }
 }
@@ -153,7 +158,7 @@ pub struct PointCloudMap {
     dim: usize,
     positions: Vec<[f32; 3]>,
     colours: Vec<[u8; 3]>,
-    embeddings: Vec<f32>,
+    embeddings: EmbeddingStore,
     /// Current downsampling resolution in metres (0 until the budget was first exceeded). It only
     /// grows, so the density of the map never rises again once bounded.
     voxel_size: f32,
@@ -196,11 +201,11 @@ impl PointCloudMap {
     /// An empty map (use [`PointCloudConfig::build`] for validated parameters).
     pub fn new(config: PointCloudConfig, dim: usize) -> Self {
         Self {
+            embeddings: EmbeddingStore::new(dim, config.precision),
             config,
             dim,
             positions: Vec::new(),
             colours: Vec::new(),
-            embeddings: Vec::new(),
             voxel_size: 0.0,
             frames: 0,
         }
@@ -211,9 +216,9 @@ impl PointCloudMap {
         &self.positions
     }
 
-    /// The `len x dim` embedding table.
-    pub fn embeddings(&self) -> &[f32] {
-        &self.embeddings
+    /// The `len x dim` embedding table, widened to `f32`.
+    pub fn embeddings(&self) -> Vec<f32> {
+        self.embeddings.to_f32()
     }
 
     /// The current downsampling voxel size (0 while under budget so far).
@@ -334,38 +339,35 @@ impl PointCloudMap {
                 c[k] = ((1.0 - w) * f32::from(p[k]) + w * f32::from(c[k])).round() as u8;
             }
         };
+        // Colours first (always), embeddings next: the two tables are updated in separate passes.
+        self.colours
+            .par_iter_mut()
+            .zip(matches.par_iter())
+            .with_min_len(1024)
+            .filter(|(_, m)| **m != u32::MAX)
+            .for_each(|(c, &m)| fuse_colour(c, new.pixels[m as usize]));
         let Some(embeddings) = obs.embeddings.filter(|_| self.dim > 0) else {
-            self.colours
-                .par_iter_mut()
-                .zip(matches.par_iter())
-                .filter(|(_, m)| **m != u32::MAX)
-                .for_each(|(c, &m)| fuse_colour(c, new.pixels[m as usize]));
             return;
         };
         let dim = self.dim;
         let width = obs.frame.depth.width();
-        self.embeddings
-            .par_chunks_exact_mut(dim)
-            .zip(self.colours.par_iter_mut())
-            .zip(matches.par_iter())
-            .with_min_len(256)
-            .filter(|(_, m)| **m != u32::MAX)
-            .for_each_init(
-                || vec![0.0f32; dim],
-                |scratch, ((e_map, c), &m)| {
-                    let pixel = new.pixels[m as usize];
-                    fuse_colour(c, pixel);
-                    if let Some(e_new) = lookup(embeddings, pixel, width, &mut scratch[..]) {
-                        for (a, b) in e_map.iter_mut().zip(e_new) {
-                            *a = (1.0 - w) * b + w * *a;
-                        }
-                        // Opposite vectors cancel to zero: take the new observation then.
-                        if !normalise(e_map) {
-                            e_map.copy_from_slice(e_new);
-                        }
+        self.embeddings.par_update_rows_with(
+            0,
+            || vec![0.0f32; dim],
+            |scratch, i, e_map| {
+                let m = matches[i];
+                if m == u32::MAX {
+                    return false;
+                }
+                match lookup(embeddings, new.pixels[m as usize], width, &mut scratch[..]) {
+                    Some(e_new) => {
+                        fuse_into(e_map, e_new, w);
+                        true
                     }
-                },
-            );
+                    None => false,
+                }
+            },
+        );
     }
 
     fn insert(&mut self, obs: &Observation<'_>, new: &Observed, chosen: &[bool]) -> usize {
@@ -382,22 +384,24 @@ impl PointCloudMap {
         if let Some(embeddings) = obs.embeddings
             && dim > 0
         {
-            let start = self.embeddings.len();
-            self.embeddings.resize(start + fresh.len() * dim, 0.0);
+            let start = self.embeddings.rows();
+            self.embeddings.grow(fresh.len());
             let width = obs.frame.depth.width();
-            self.embeddings[start..]
-                .par_chunks_exact_mut(dim)
-                .zip(fresh.par_iter())
-                .for_each_init(
-                    || vec![0.0f32; dim],
-                    |scratch, (row, &i)| {
-                        // Every observed pixel has an embedding (`observe` filters on it).
-                        if let Some(e) = lookup(embeddings, new.pixels[i], width, &mut scratch[..])
-                        {
+            self.embeddings.par_update_rows_with(
+                start,
+                || vec![0.0f32; dim],
+                |scratch, row_index, row| {
+                    let pixel = new.pixels[fresh[row_index - start]];
+                    // Every observed pixel has an embedding (`observe` filters on it).
+                    match lookup(embeddings, pixel, width, &mut scratch[..]) {
+                        Some(e) => {
                             row.copy_from_slice(e);
+                            true
                         }
-                    },
-                );
+                        None => false,
+                    }
+                },
+            );
         }
         fresh.len()
     }
@@ -476,25 +480,27 @@ impl PointCloudMap {
             merged_embeddings
                 .par_chunks_exact_mut(dim)
                 .zip(multi.par_iter())
-                .for_each(|(row, run)| {
-                    for &(_, i) in run.iter() {
-                        let e = &self.embeddings[i as usize * dim..(i as usize + 1) * dim];
-                        row.iter_mut().zip(e).for_each(|(a, b)| *a += b);
-                    }
-                    // Members that cancel out: keep the first one's embedding.
-                    if !normalise(row) {
-                        let i = run[0].1 as usize;
-                        row.copy_from_slice(&self.embeddings[i * dim..(i + 1) * dim]);
-                    }
-                });
+                .for_each_init(
+                    || vec![0.0f32; dim],
+                    |member, (row, run)| {
+                        for &(_, i) in run.iter() {
+                            self.embeddings.row_into(i as usize, member);
+                            row.iter_mut().zip(member.iter()).for_each(|(a, b)| *a += b);
+                        }
+                        // Members that cancel out: keep the first one's embedding.
+                        if !normalise(row) {
+                            self.embeddings.row_into(run[0].1 as usize, row);
+                        }
+                    },
+                );
         }
         let mut dead = Vec::with_capacity(self.positions.len() - groups.count);
         for (g, (target, p, c)) in merged_points.into_iter().enumerate() {
             self.positions[target] = p;
             self.colours[target] = c;
             if dim > 0 {
-                self.embeddings[target * dim..(target + 1) * dim]
-                    .copy_from_slice(&merged_embeddings[g * dim..(g + 1) * dim]);
+                self.embeddings
+                    .set_row(target, &merged_embeddings[g * dim..(g + 1) * dim]);
             }
             dead.extend(
                 multi[g]
@@ -506,15 +512,10 @@ impl PointCloudMap {
         // Descending, so the point moved into a dead slot is always a live one.
         dead.par_sort_unstable_by(|a, b| b.cmp(a));
         for d in dead {
-            let last = self.positions.len() - 1;
             self.positions.swap_remove(d);
             self.colours.swap_remove(d);
             if dim > 0 {
-                if d != last {
-                    self.embeddings
-                        .copy_within(last * dim..(last + 1) * dim, d * dim);
-                }
-                self.embeddings.truncate(last * dim);
+                self.embeddings.swap_remove(d);
             }
         }
     }
@@ -615,11 +616,11 @@ impl EmbeddingMap for PointCloudMap {
     fn memory_bytes(&self) -> usize {
         self.positions.capacity() * std::mem::size_of::<[f32; 3]>()
             + self.colours.capacity() * 3
-            + self.embeddings.capacity() * std::mem::size_of::<f32>()
+            + self.embeddings.memory_bytes()
     }
 
     fn similarity(&self, text: &[f32], out: &mut Vec<f32>) -> vlem_core::Result<()> {
-        vlem_core::query::normalised_similarity(&self.embeddings, self.dim, text, out)
+        self.embeddings.similarity(text, out)
     }
 
     fn snapshot(&self) -> MapSnapshot {
@@ -628,7 +629,7 @@ impl EmbeddingMap for PointCloudMap {
             dim: self.dim,
             positions: self.positions.clone(),
             colours: self.colours.clone(),
-            embeddings: self.embeddings.clone(),
+            embeddings: self.embeddings.to_f32(),
             metadata: MapMetadata {
                 frames_integrated: self.frames,
                 ..MapMetadata::default()
@@ -648,7 +649,8 @@ impl EmbeddingMap for PointCloudMap {
         self.frames = snapshot.metadata.frames_integrated;
         self.positions = snapshot.positions;
         self.colours = snapshot.colours;
-        self.embeddings = snapshot.embeddings;
+        self.embeddings =
+            EmbeddingStore::from_f32(self.dim, self.config.precision, snapshot.embeddings);
         self.voxel_size = 0.0;
         let _ = self.enforce_budget(0.0);
         Ok(())
@@ -838,6 +840,57 @@ mod tests {
         );
         assert_eq!(m.embeddings().len(), m.len() * DIM);
         assert!(m.voxel_size() > 0.0);
+    }
+
+    #[test]
+    fn f16_storage_halves_embedding_bytes_and_keeps_the_query_ranking() {
+        let mut maps = [Precision::F32, Precision::F16].map(|precision| {
+            map(PointCloudConfig {
+                precision,
+                ..PointCloudConfig::default()
+            })
+        });
+        let f = plane(1.0);
+        // Two observations with different embeddings on the left and right halves.
+        let index: Vec<u32> = (0..16 * 12).map(|i| u32::from(i % 16 >= 8)).collect();
+        let a = PixelEmbeddings::from_segments(
+            16,
+            12,
+            DIM,
+            index.clone(),
+            vec![0.9, 0.1, 0.3, 0.2, 0.1, 0.8, 0.2, 0.4],
+        )
+        .unwrap();
+        let b = PixelEmbeddings::from_segments(
+            16,
+            12,
+            DIM,
+            index,
+            vec![0.5, 0.5, 0.1, 0.7, 0.3, 0.3, 0.6, 0.2],
+        )
+        .unwrap();
+        for m in &mut maps {
+            integrate(m, &f, &Pose::identity(), &a);
+            integrate(m, &f, &Pose::identity(), &b);
+        }
+        let text = [0.6, 0.2, 0.7, 0.3];
+        let (mut s32, mut s16) = (Vec::new(), Vec::new());
+        maps[0].similarity(&text, &mut s32).unwrap();
+        maps[1].similarity(&text, &mut s16).unwrap();
+        let tie = 2.0 * 2f32.powi(-12);
+        for i in 0..s32.len() {
+            for j in 0..s32.len() {
+                if s32[i] - s32[j] > tie {
+                    assert!(s16[i] > s16[j], "points {i} and {j} swap at f16");
+                }
+            }
+        }
+        assert!(
+            s32.iter().any(|x| (x - s32[0]).abs() > 0.01),
+            "the test needs distinct scores"
+        );
+        let embedding_bytes = |m: &PointCloudMap| m.memory_bytes() - m.len() * 15;
+        assert_eq!(embedding_bytes(&maps[0]), 2 * embedding_bytes(&maps[1]));
     }
 
     #[test]

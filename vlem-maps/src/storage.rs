@@ -79,7 +79,11 @@ impl EmbeddingStore {
 
     /// Number of rows (0 for a dimension-0 table).
     pub fn rows(&self) -> usize {
-        if self.dim == 0 { 0 } else { self.value_count() / self.dim }
+        if self.dim == 0 {
+            0
+        } else {
+            self.value_count() / self.dim
+        }
     }
 
     /// Bytes allocated for the values.
@@ -139,6 +143,16 @@ impl EmbeddingStore {
     where
         F: Fn(usize, &mut [f32]) -> bool + Sync,
     {
+        self.par_update_rows_with(first, || (), |_, i, row| update(i, row));
+    }
+
+    /// Like [`EmbeddingStore::par_update_rows_from`], with per-thread state made by `init` (e.g. a
+    /// scratch buffer) passed to every call.
+    pub fn par_update_rows_with<S, I, F>(&mut self, first: usize, init: I, update: F)
+    where
+        I: Fn() -> S + Sync + Send,
+        F: Fn(&mut S, usize, &mut [f32]) -> bool + Sync,
+    {
         let d = self.dim;
         if d == 0 {
             return;
@@ -148,20 +162,20 @@ impl EmbeddingStore {
                 .par_chunks_exact_mut(d)
                 .enumerate()
                 .with_min_len(256)
-                .for_each(|(i, row)| {
-                    update(first + i, row);
+                .for_each_init(init, |state, (i, row)| {
+                    update(state, first + i, row);
                 }),
             Values::F16(v) => v[first * d..]
                 .par_chunks_exact_mut(d)
                 .enumerate()
                 .with_min_len(256)
                 .for_each_init(
-                    || vec![0.0f32; d],
-                    |scratch, (i, row)| {
+                    || (init(), vec![0.0f32; d]),
+                    |(state, scratch), (i, row)| {
                         for (s, x) in scratch.iter_mut().zip(row.iter()) {
                             *s = x.to_f32();
                         }
-                        if update(first + i, scratch) {
+                        if update(state, first + i, scratch) {
                             for (x, s) in row.iter_mut().zip(scratch.iter()) {
                                 *x = f16::from_f32(*s);
                             }
@@ -294,7 +308,11 @@ mod tests {
                 }
             }
         }
-        assert!(a.iter().zip(&b).all(|(x, y)| (x - y).abs() <= 2f32.powi(-12) + 1e-6));
+        assert!(
+            a.iter()
+                .zip(&b)
+                .all(|(x, y)| (x - y).abs() <= 2f32.powi(-12) + 1e-6)
+        );
         assert_eq!(half.memory_bytes() * 2, full.memory_bytes());
     }
 
