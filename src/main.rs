@@ -11,9 +11,10 @@ use clap::{Parser, Subcommand};
 use indicatif::{ProgressBar, ProgressStyle};
 use vlem_core::pipeline::{Pipeline, Progress, RunReport};
 use vlem_core::{
-    BuildContext, Config, Encoder, MapMetadata, MapSnapshot, QueryScores, Registry, StageConfig,
-    StageKind,
+    BuildContext, Config, Encoder, MapMetadata, MapSnapshot, PointSet, QueryScores, Registry,
+    StageConfig, StageKind,
 };
+use vlem_maps::grasp::GraspParams;
 
 /// The embedded default configuration that `vlem demo` runs.
 const DEMO_CONFIG: &str = include_str!("../configs/demo.toml");
@@ -56,9 +57,23 @@ enum Command {
         /// Write a PLY heatmap (jet colours); with several queries, one file per query.
         #[arg(long)]
         ply: Option<PathBuf>,
-        /// Normalised similarity at or above which a point counts as a hit.
-        #[arg(long, default_value_t = 0.75)]
-        threshold: f32,
+        /// How points are selected: `threshold` (similarity ≥ --threshold), `argmax` (the best of
+        /// the queries and the baseline "object") or `cluster` (argmax, then GMM on similarity and
+        /// DBSCAN on coordinates: one point set per object, best first).
+        #[arg(long, default_value = "threshold")]
+        segmenter: String,
+        /// Normalised similarity at or above which a point counts as a hit (default 0.75 for
+        /// `threshold`; for `argmax` and `cluster`, a minimum on top of beating the baseline).
+        #[arg(long)]
+        threshold: Option<f32>,
+        /// The generic text a point must match better to belong to a query, for `argmax` and
+        /// `cluster` (default "object"; it must be a text the map's encoder can embed).
+        #[arg(long)]
+        baseline: Option<String>,
+        /// Compute a parallel-gripper grasp (approach from above, +y) on each query's best point
+        /// set; with --ply, the gripper is drawn into the heatmap.
+        #[arg(long)]
+        grasp: bool,
         /// Query texts.
         #[arg(required = true)]
         text: Vec<String>,
@@ -78,11 +93,26 @@ fn main() -> std::process::ExitCode {
     match execute(Cli::parse().command) {
         Ok(()) => std::process::ExitCode::SUCCESS,
         Err(e) => {
-            // The whole cause chain on one line, without a backtrace: these are user errors.
-            eprintln!("error: {e:#}");
+            eprintln!("error: {}", one_line(&e));
             std::process::ExitCode::FAILURE
         }
     }
+}
+
+/// The cause chain on one line, without a backtrace (these are user errors). Library errors that
+/// wrap another one already say its message, so a cause already contained in the line is skipped.
+fn one_line(e: &anyhow::Error) -> String {
+    let mut line = String::new();
+    for cause in e.chain() {
+        let text = cause.to_string();
+        if !line.contains(&text) {
+            if !line.is_empty() {
+                line.push_str(": ");
+            }
+            line.push_str(&text);
+        }
+    }
+    line
 }
 
 fn execute(command: Command) -> Result<()> {
@@ -106,9 +136,22 @@ fn execute(command: Command) -> Result<()> {
         Command::Query {
             map,
             ply,
+            segmenter,
             threshold,
+            baseline,
+            grasp,
             text,
-        } => query(&map, ply.as_deref(), threshold, &text),
+        } => query(
+            &map,
+            &QueryOptions {
+                ply,
+                segmenter,
+                threshold,
+                baseline,
+                grasp,
+            },
+            &text,
+        ),
         Command::Plugins => list_plugins(),
         Command::Demo { out } => {
             let config = Config::from_toml(DEMO_CONFIG)
@@ -288,7 +331,16 @@ fn print_summary(report: &RunReport, map: Option<&dyn vlem_core::EmbeddingMap>, 
     println!("wrote {}", out.display());
 }
 
-fn query(map_path: &Path, ply: Option<&Path>, threshold: f32, texts: &[String]) -> Result<()> {
+/// The options of `vlem query` besides the map and the texts.
+struct QueryOptions {
+    ply: Option<PathBuf>,
+    segmenter: String,
+    threshold: Option<f32>,
+    baseline: Option<String>,
+    grasp: bool,
+}
+
+fn query(map_path: &Path, options: &QueryOptions, texts: &[String]) -> Result<()> {
     let snapshot = vlem_core::read_map_file(map_path)?;
     let Some(stage) = snapshot.metadata.encoder.clone() else {
         bail!(
@@ -303,10 +355,20 @@ fn query(map_path: &Path, ply: Option<&Path>, threshold: f32, texts: &[String]) 
     let registry = Registry::global()?;
     let encoder = registry.build_encoder(&stage, &ctx)?;
     let mut params = toml::Table::new();
-    params.insert("threshold".into(), toml::Value::Float(f64::from(threshold)));
+    // The threshold segmenter always has one (0.75 unless given); the others only when asked.
+    let threshold = match (options.segmenter.as_str(), options.threshold) {
+        ("threshold", t) => Some(t.unwrap_or(0.75)),
+        (_, t) => t,
+    };
+    if let Some(t) = threshold {
+        params.insert("threshold".into(), toml::Value::Float(f64::from(t)));
+    }
+    if let Some(b) = &options.baseline {
+        params.insert("baseline".into(), toml::Value::String(b.clone()));
+    }
     let segmenter = registry.build_segmenter(
         &StageConfig {
-            kind: "threshold".into(),
+            kind: options.segmenter.clone(),
             params,
         },
         &ctx,
@@ -318,11 +380,49 @@ fn query(map_path: &Path, ply: Option<&Path>, threshold: f32, texts: &[String]) 
         snapshot.dim,
         stage.kind
     );
-    let scores = answer_queries(&snapshot, encoder.as_ref(), segmenter.as_ref(), texts, None)?;
-    if let Some(ply) = ply {
+    let (scores, sets) =
+        answer_queries(&snapshot, encoder.as_ref(), segmenter.as_ref(), texts, None)?;
+    let mut grasps = vec![None; texts.len()];
+    if options.grasp {
+        for (q, text) in texts.iter().enumerate() {
+            // Sets of one query, best first by mean similarity: the paper grasps the best cluster.
+            let best = sets
+                .iter()
+                .filter(|set| set.query == q && !set.indices.is_empty())
+                .max_by(|a, b| a.mean_score.total_cmp(&b.mean_score));
+            let Some(best) = best else {
+                println!("\"{text}\": no grasp: no point set selected");
+                continue;
+            };
+            let points: Vec<[f32; 3]> = best
+                .indices
+                .iter()
+                .map(|&i| snapshot.positions[i])
+                .collect();
+            match vlem_maps::grasp::grasp_from_points(&points, &GraspParams::default()) {
+                Ok(g) => {
+                    let (p, c) = (g.position, g.closing);
+                    println!(
+                        "\"{text}\": grasp at ({:.3}, {:.3}, {:.3}), closing along ({:.3}, {:.3}, {:.3}), width {:.3} m, from a set of {} points",
+                        p[0],
+                        p[1],
+                        p[2],
+                        c[0],
+                        c[1],
+                        c[2],
+                        g.width,
+                        points.len()
+                    );
+                    grasps[q] = Some(g);
+                }
+                Err(e) => println!("\"{text}\": no grasp: {e}"),
+            }
+        }
+    }
+    if let Some(ply) = &options.ply {
         for (i, s) in scores.scores.iter().enumerate() {
             let path = if texts.len() == 1 {
-                ply.to_path_buf()
+                ply.clone()
             } else {
                 let stem = ply
                     .file_stem()
@@ -330,22 +430,27 @@ fn query(map_path: &Path, ply: Option<&Path>, threshold: f32, texts: &[String]) 
                     .unwrap_or_default();
                 ply.with_file_name(format!("{stem}-{}.ply", slug(&texts[i])))
             };
-            output::write_atomically(&path, &output::heatmap_ply(&snapshot.positions, s))?;
+            let marker = grasps[i]
+                .as_ref()
+                .map(output::gripper_vertices)
+                .unwrap_or_default();
+            output::write_atomically(&path, &output::heatmap_ply(&snapshot.positions, s, &marker))?;
             println!("wrote {}", path.display());
         }
     }
     Ok(())
 }
 
-/// Scores every point for every query, prints a line per query, and (with `ply_dir`) writes one
-/// heatmap PLY per query there.
+/// Scores every point for every query, segments them, prints a line per query (and one per point
+/// set for segmenters that make several), and (with `ply_dir`) writes one heatmap PLY per query
+/// there.
 fn answer_queries(
     snapshot: &MapSnapshot,
     encoder: &dyn Encoder,
     segmenter: &dyn vlem_core::Segmenter,
     texts: &[String],
     ply_dir: Option<&Path>,
-) -> Result<QueryScores> {
+) -> Result<(QueryScores, Vec<PointSet>)> {
     if snapshot.dim != encoder.dim() {
         bail!(
             "the map holds {}-d embeddings but the encoder `{}` makes {}-d ones",
@@ -365,38 +470,81 @@ fn answer_queries(
     let scores = QueryScores {
         queries: texts.to_vec(),
         scores: texts.iter().map(|t| score(t)).collect::<Result<_>>()?,
-        baseline: segmenter.baseline_query().map(score).transpose()?,
+        baseline: segmenter
+            .baseline_query()
+            .map(|b| {
+                score(b).with_context(|| {
+                    format!(
+                        "the baseline of segmenter `{}` (set its `baseline` parameter; `vlem query --baseline TEXT`)",
+                        segmenter.name()
+                    )
+                })
+            })
+            .transpose()?,
     };
     let sets = segmenter.segment(&snapshot.positions, &scores)?;
     for (q, text) in texts.iter().enumerate() {
         let s = &scores.scores[q];
         let best = (0..s.len()).max_by(|&a, &b| s[a].total_cmp(&s[b]));
-        let hits: usize = sets
+        let mut own: Vec<&PointSet> = sets
             .iter()
-            .filter(|set| set.query == q)
-            .map(|set| set.indices.len())
-            .sum();
+            .filter(|set| set.query == q && !set.indices.is_empty())
+            .collect();
+        own.sort_by(|a, b| b.mean_score.total_cmp(&a.mean_score));
+        let hits: usize = own.iter().map(|set| set.indices.len()).sum();
         match best {
             Some(i) => {
                 let p = snapshot.positions[i];
                 println!(
-                    "\"{text}\": best {:.3} at ({:.2}, {:.2}, {:.2}); {hits} of {} points selected by `{}`",
+                    "\"{text}\": best {:.3} at ({:.2}, {:.2}, {:.2}); {hits} of {} points in {} point set{} selected by `{}`",
                     s[i],
                     p[0],
                     p[1],
                     p[2],
                     s.len(),
+                    own.len(),
+                    if own.len() == 1 { "" } else { "s" },
                     segmenter.name()
                 );
             }
             None => println!("\"{text}\": the map is empty"),
         }
+        // Several sets per query are clusters (objects): list the best few.
+        if own.len() > 1 {
+            const SHOWN: usize = 5;
+            for (rank, set) in own.iter().take(SHOWN).enumerate() {
+                let n = set.indices.len() as f64;
+                let centre = set.indices.iter().fold([0.0f64; 3], |acc, &i| {
+                    let p = snapshot.positions[i];
+                    [
+                        acc[0] + f64::from(p[0]) / n,
+                        acc[1] + f64::from(p[1]) / n,
+                        acc[2] + f64::from(p[2]) / n,
+                    ]
+                });
+                println!(
+                    "  cluster {}: {} points, mean similarity {:.3}, centre ({:.2}, {:.2}, {:.2})",
+                    rank + 1,
+                    set.indices.len(),
+                    set.mean_score,
+                    centre[0],
+                    centre[1],
+                    centre[2]
+                );
+            }
+            if own.len() > SHOWN {
+                println!(
+                    "  … and {} more clusters with lower similarity",
+                    own.len() - SHOWN
+                );
+            }
+        }
         if let Some(dir) = ply_dir {
             let path = dir.join(format!("query-{}.ply", slug(text)));
-            output::write_atomically(&path, &output::heatmap_ply(&snapshot.positions, s))?;
+            output::write_atomically(&path, &output::heatmap_ply(&snapshot.positions, s, &[]))?;
         }
     }
-    Ok(scores)
+    Ok((scores, sets))
 }
 
 /// A file-name-safe form of a query.

@@ -312,3 +312,95 @@ fn broken_map_files_are_refused_clearly() {
         "{err}"
     );
 }
+
+#[test]
+fn query_clusters_and_grasps() {
+    let tmp = tempfile::tempdir().unwrap();
+    let out_dir = tmp.path().join("small");
+    ok(&[
+        "run",
+        "--config",
+        "configs/demo.toml",
+        "--max-frames",
+        "3",
+        "--out",
+        out_dir.to_str().unwrap(),
+    ]);
+    let map = out_dir.join("map.vlem");
+    let map = map.to_str().unwrap();
+    let plugins = ok(&["plugins"]);
+    assert!(
+        plugins.contains("  argmax ") && plugins.contains("  cluster "),
+        "{plugins}"
+    );
+
+    // The colour-names encoder cannot embed the default baseline "object": the error says how to
+    // choose another.
+    let err = fails(&["query", "--map", map, "--segmenter", "cluster", "white"]);
+    assert!(
+        err.contains("cannot embed the query \"object\"") && err.contains("--baseline"),
+        "{err}"
+    );
+    let err = fails(&["query", "--map", map, "--segmenter", "kmeans", "white"]);
+    assert!(err.contains("kmeans"), "{err}");
+
+    let ply = tmp.path().join("white.ply");
+    let stdout = ok(&[
+        "query",
+        "--map",
+        map,
+        "--segmenter",
+        "cluster",
+        "--baseline",
+        "grey",
+        "--grasp",
+        "--ply",
+        ply.to_str().unwrap(),
+        "white",
+    ]);
+    assert!(stdout.contains("selected by `cluster`"), "{stdout}");
+    let sets: usize = stdout
+        .split(" point set")
+        .next()
+        .and_then(|s| s.rsplit(' ').next())
+        .unwrap()
+        .parse()
+        .unwrap();
+    assert!(sets >= 1, "{stdout}");
+    if sets > 1 {
+        assert!(stdout.contains("  cluster 1: "), "{stdout}");
+    }
+    let grasped = stdout.contains("\"white\": grasp at (");
+    assert!(
+        grasped || stdout.contains("\"white\": no grasp: "),
+        "{stdout}"
+    );
+    let bytes = std::fs::read(&ply).unwrap();
+    let header = String::from_utf8_lossy(&bytes[..400]);
+    assert_eq!(header.contains("draw the grasp"), grasped, "{header}");
+
+    // argmax: one set per query; the grasp line is always there, with a pose or a reason.
+    let stdout = ok(&[
+        "query",
+        "--map",
+        map,
+        "--segmenter",
+        "argmax",
+        "--baseline",
+        "grey",
+        "--grasp",
+        "white",
+        "brown",
+    ]);
+    assert!(
+        stdout.contains("in 1 point set selected by `argmax`"),
+        "{stdout}"
+    );
+    for text in ["white", "brown"] {
+        assert!(
+            stdout.contains(&format!("\"{text}\": grasp at ("))
+                || stdout.contains(&format!("\"{text}\": no grasp: ")),
+            "{stdout}"
+        );
+    }
+}

@@ -56,6 +56,40 @@ pub enum MapError {
         /// Scores given.
         actual: usize,
     },
+    /// A segmenter that compares against a baseline query got no baseline scores.
+    #[error(
+        "no similarities for the baseline query \"{baseline}\": the caller must score it (see `Segmenter::baseline_query`)"
+    )]
+    MissingBaseline {
+        /// The baseline text.
+        baseline: String,
+    },
+    /// Baseline scores that do not match the points.
+    #[error("the baseline query has {actual} scores for {expected} points")]
+    BaselineCount {
+        /// Points.
+        expected: usize,
+        /// Scores given.
+        actual: usize,
+    },
+    /// Too few (distinct) points to place a grasp.
+    #[error("too few points for a grasp: {found} at the grasp depth, at least {needed} needed")]
+    GraspPoints {
+        /// Usable points found.
+        found: usize,
+        /// The minimum.
+        needed: usize,
+    },
+    /// The object is wider than the gripper opens at the grasp depth.
+    #[error(
+        "the object is {width:.3} m wide at the grasp depth, the gripper opens to {max_width:.3} m"
+    )]
+    GraspWidth {
+        /// Narrowest width of the object in the grasp slab (m).
+        width: f64,
+        /// The gripper's maximum opening (m).
+        max_width: f64,
+    },
 }
 
 impl MapError {

@@ -1,1 +1,1342 @@
-//! `segment`: an Open-Fusion-style map of 3D segments (being written).
+//! `segment`: an Open-Fusion-style map of 3D segments (Yamazaki et al. 2024), one embedding each.
+//!
+//! The map is a set of 3D segments. Each owns cells of a coarse grid (`point_spacing`); a cell has
+//! exactly one owner. Per frame:
+//! 1. **2D segments.** Every valid pixel (finite positive depth, at most `max_depth`, with an
+//!    embedding) is back-projected into the map frame and quantised to its grid cell. Pixels are
+//!    grouped into 2D segments: by the encoder's segment id in the segment layout; by the patch
+//!    whose centre is nearest (the patch containing the pixel) in the patch-grid layout, which has
+//!    no segments of its own; and by 32x32-pixel tiles for a geometry-only map. A 2D segment's
+//!    embedding is its table row, or the normalised mean of its pixels' embeddings for patches.
+//! 2. **Association.** `overlap(s, S)` is the number of cells of the 2D segment `s` owned by the 3D
+//!    segment `S`, and the score is `overlap / min(|s|, |S ∩ frame|)`, where `S ∩ frame` are the
+//!    cells of `S` this frame observed (so occluded and out-of-view parts of `S` do not count
+//!    against it, and a segment seen in part again still matches). Pairs scoring below
+//!    `min_overlap` are dropped; the rest are assigned one-to-one by the Hungarian algorithm,
+//!    maximising the total score. A matched 3D segment fuses the observation into its embedding
+//!    with `e := (1 - w) e_obs + w e`, renormalised (w = `map_weight`), and takes the unowned
+//!    cells of the 2D segment (cells of another segment stay with their owner). An unmatched 2D
+//!    segment that would own at least `min_cells` unowned cells becomes a new 3D segment.
+//!    Observed cells fuse their colour with the same weights.
+//! 3. **Budget.** The map's points are its cells; while there are more than `max_points`, the
+//!    segments observed least recently (then the smallest, then the oldest) are removed. Segments
+//!    seen in the current frame are never evicted: if they alone exceed the budget, the grid is
+//!    coarsened instead (spacing doubled, cells merged, a merged cell keeping its first owner) and
+//!    the coarser spacing is kept for later frames, like the point-cloud map's voxel size.
+//!
+//! Only segments that own an observed cell change: a matched segment's embedding changes for all
+//! its cells, including those out of view, as in Open-Fusion; segments not seen are untouched.
+//!
+//! Points are reported per cell, ordered by segment creation, then cell key; `restore` splits a
+//! snapshot into segments at every change of embedding or break in key order, so a map's own
+//! snapshot round-trips in the same order.
+
+use std::collections::{BTreeMap, HashMap};
+
+use nalgebra::{Matrix3, Vector3};
+use serde::Deserialize;
+use vlem_core::embeddings::{EmbeddingLayout, normalise};
+use vlem_core::{
+    BuildContext, CoreError, EmbeddingMap, IntegrationStats, MapMetadata, MapSnapshot, Observation,
+    PixelEmbeddings, StageKind, parse_params,
+};
+
+use crate::error::MapError;
+use crate::storage::{EmbeddingStore, Precision, fuse_into};
+
+/// The registered name.
+pub const NAME: &str = "segment";
+
+/// Tile size (pixels) of the 2D segments of a geometry-only map, which has no segmentation.
+const GEOMETRY_TILE: u32 = 32;
+
+/// `[map] kind = "segment"` parameters.
+#[derive(Clone, Debug, Deserialize, PartialEq)]
+#[serde(deny_unknown_fields)]
+pub struct SegmentConfig {
+    /// Embedding dimension; defaults to the encoder's (0 without an encoder). If set, it must equal
+    /// the encoder's.
+    #[serde(default)]
+    pub dim: Option<usize>,
+    /// Budget on the number of cells (the map's points); default 1,000,000.
+    #[serde(default = "default_max_points")]
+    pub max_points: usize,
+    /// Grid cell size in metres; default 0.02.
+    #[serde(default = "default_point_spacing")]
+    pub point_spacing: f32,
+    /// Minimum overlap score for a 2D segment to join a 3D segment, in (0, 1]; default 0.25.
+    #[serde(default = "default_min_overlap")]
+    pub min_overlap: f32,
+    /// Minimum number of new cells for an unmatched 2D segment to start a 3D segment; default 10.
+    #[serde(default = "default_min_cells")]
+    pub min_cells: usize,
+    /// Weight `w` of the map embedding in the fusion; default 0.5 (the paper's value).
+    #[serde(default = "default_map_weight")]
+    pub map_weight: f32,
+    /// Depth beyond this (metres) is not integrated; default 10.
+    #[serde(default = "default_max_depth")]
+    pub max_depth: f32,
+    /// Embedding storage, `"f32"` (default) or `"f16"` (half the bytes, same query ranking).
+    #[serde(default)]
+    pub precision: Precision,
+}
+
+fn default_max_points() -> usize {
+    1_000_000
+}
+fn default_point_spacing() -> f32 {
+    0.02
+}
+fn default_min_overlap() -> f32 {
+    0.25
+}
+fn default_min_cells() -> usize {
+    10
+}
+fn default_map_weight() -> f32 {
+    0.5
+}
+fn default_max_depth() -> f32 {
+    10.0
+}
+
+impl Default for SegmentConfig {
+    fn default() -> Self {
+        Self {
+            dim: None,
+            max_points: default_max_points(),
+            point_spacing: default_point_spacing(),
+            min_overlap: default_min_overlap(),
+            min_cells: default_min_cells(),
+            map_weight: default_map_weight(),
+            max_depth: default_max_depth(),
+            precision: Precision::default(),
+        }
+    }
+}
+
+impl SegmentConfig {
+    /// Builds the map for embeddings of dimension `encoder_dim` (`None` without an encoder).
+    ///
+    /// # Errors
+    /// [`MapError::InvalidParameter`] (wrapped as a stage error) for out-of-range values and for a
+    /// `dim` that disagrees with the encoder.
+    pub fn build(&self, encoder_dim: Option<usize>) -> Result<SegmentMap, CoreError> {
+        let invalid = |name: &'static str, reason: &str| {
+            CoreError::stage(
+                StageKind::Map,
+                NAME,
+                MapError::InvalidParameter {
+                    name,
+                    reason: reason.to_owned(),
+                },
+            )
+        };
+        if self.max_points == 0 {
+            return Err(invalid("max_points", "must be at least 1"));
+        }
+        if !(self.point_spacing.is_finite() && self.point_spacing > 0.0) {
+            return Err(invalid(
+                "point_spacing",
+                "must be a positive number of metres",
+            ));
+        }
+        if !(self.min_overlap > 0.0 && self.min_overlap <= 1.0) {
+            return Err(invalid("min_overlap", "must lie in (0, 1]"));
+        }
+        if self.min_cells == 0 {
+            return Err(invalid("min_cells", "must be at least 1"));
+        }
+        if !(0.0..=1.0).contains(&self.map_weight) {
+            return Err(invalid("map_weight", "must lie in [0, 1]"));
+        }
+        if !(self.max_depth.is_finite() && self.max_depth > 0.0) {
+            return Err(invalid("max_depth", "must be a positive number of metres"));
+        }
+        let dim = match (self.dim, encoder_dim) {
+            (Some(map_dim), Some(encoder_dim)) if map_dim != encoder_dim => {
+                return Err(invalid(
+                    "dim",
+                    &format!(
+                        "is {map_dim} but the encoder produces {encoder_dim}-d embeddings: \
+                         remove `dim` or set it to {encoder_dim}"
+                    ),
+                ));
+            }
+            (Some(d), _) => d,
+            (None, d) => d.unwrap_or(0),
+        };
+        Ok(SegmentMap::new(self.clone(), dim))
+    }
+}
+
+fn build(params: &toml::Table, ctx: &BuildContext) -> vlem_core::Result<Box<dyn EmbeddingMap>> {
+    let config: SegmentConfig = parse_params(StageKind::Map, NAME, params)?;
+    Ok(Box::new(config.build(ctx.embedding_dim)?))
+}
+
+vlem_core::register_map!(
+    NAME,
+    "3D segments with one fused embedding each, associated by overlap (Open-Fusion style)",
+    build
+);
+
+/// Integer grid coordinates of a cell.
+type CellKey = [i32; 3];
+
+/// The cell of `p` at grid spacing `spacing` (saturating far from the origin).
+fn cell_key(p: [f32; 3], spacing: f32) -> CellKey {
+    p.map(|x| (x / spacing).floor() as i32)
+}
+
+fn cell_centre(k: CellKey, spacing: f32) -> [f32; 3] {
+    k.map(|i| (i as f32 + 0.5) * spacing)
+}
+
+/// One cell of a 3D segment.
+#[derive(Clone, Copy, Debug, PartialEq)]
+struct Cell {
+    /// Reported position: the cell centre (or the restored snapshot position).
+    position: [f32; 3],
+    colour: [u8; 3],
+}
+
+/// A 3D segment.
+#[derive(Clone, Debug)]
+struct Segment {
+    /// Row in the embedding store (unused for a geometry-only map).
+    row: usize,
+    /// Frame count at the last frame that observed one of its cells.
+    last_seen: u64,
+    /// Owned cells, sorted by key (the snapshot order within the segment).
+    cells: BTreeMap<CellKey, Cell>,
+}
+
+/// A 2D segment of the current frame.
+struct Segment2d {
+    /// Distinct cells, sorted.
+    cells: Vec<CellKey>,
+    /// Unit-norm embedding (empty for a geometry-only map).
+    embedding: Vec<f32>,
+}
+
+/// What one frame observed.
+struct Observed {
+    /// Every observed cell with its colour sum and pixel count.
+    cells: HashMap<CellKey, ([u32; 3], u32)>,
+    segments: Vec<Segment2d>,
+    pixels: usize,
+}
+
+/// A 2D segment under construction.
+#[derive(Default)]
+struct Accumulator {
+    cells: Vec<CellKey>,
+    embedding: Vec<f32>,
+}
+
+/// An f32 rigid transform for the per-pixel loop (poses are f64 elsewhere).
+#[derive(Clone, Copy)]
+struct Rigid {
+    r: Matrix3<f32>,
+    t: Vector3<f32>,
+}
+
+impl Rigid {
+    fn from_pose(pose: &vlem_core::Pose) -> Self {
+        let m = pose.to_homogeneous().cast::<f32>();
+        Self {
+            r: m.fixed_view::<3, 3>(0, 0).into_owned(),
+            t: m.fixed_view::<3, 1>(0, 3).into_owned(),
+        }
+    }
+
+    fn apply(&self, p: [f32; 3]) -> [f32; 3] {
+        let q = self.r * Vector3::from(p) + self.t;
+        [q.x, q.y, q.z]
+    }
+}
+
+/// The segment map.
+#[derive(Clone, Debug)]
+pub struct SegmentMap {
+    config: SegmentConfig,
+    dim: usize,
+    /// Current grid spacing: `point_spacing` until the budget forced a coarser grid.
+    spacing: f32,
+    /// Segments by id; ids grow with creation, so iteration is in creation order.
+    segments: BTreeMap<u64, Segment>,
+    /// The owner of every cell.
+    owner: HashMap<CellKey, u64>,
+    /// One embedding row per segment.
+    embeddings: EmbeddingStore,
+    /// The segment id of every store row (to fix up rows moved by `swap_remove`).
+    row_ids: Vec<u64>,
+    next_id: u64,
+    frames: usize,
+}
+
+impl SegmentMap {
+    /// An empty map (use [`SegmentConfig::build`] for validated parameters).
+    pub fn new(config: SegmentConfig, dim: usize) -> Self {
+        Self {
+            embeddings: EmbeddingStore::new(dim, config.precision),
+            spacing: config.point_spacing,
+            config,
+            dim,
+            segments: BTreeMap::new(),
+            owner: HashMap::new(),
+            row_ids: Vec::new(),
+            next_id: 0,
+            frames: 0,
+        }
+    }
+
+    /// Number of 3D segments.
+    pub fn segment_count(&self) -> usize {
+        self.segments.len()
+    }
+
+    /// The current grid spacing (grows above `point_spacing` only when the budget demands it).
+    pub fn spacing(&self) -> f32 {
+        self.spacing
+    }
+
+    /// The embedding of every segment in creation order, widened to `f32` (`segments x dim`).
+    pub fn segment_embeddings(&self) -> Vec<f32> {
+        let mut out = vec![0.0; self.segments.len() * self.dim];
+        if self.dim > 0 {
+            for (row, s) in out.chunks_exact_mut(self.dim).zip(self.segments.values()) {
+                self.embeddings.row_into(s.row, row);
+            }
+        }
+        out
+    }
+
+    fn check(&self, obs: &Observation<'_>) -> Result<(), MapError> {
+        let frame = obs.frame;
+        match (self.dim, obs.embeddings) {
+            (0, None) => Ok(()),
+            (0, Some(e)) => Err(MapError::UnexpectedEmbeddings { dim: e.dim() }),
+            (d, None) => Err(MapError::MissingEmbeddings { dim: d }),
+            (d, Some(e)) if e.dim() != d => Err(MapError::Dimension {
+                expected: d,
+                actual: e.dim(),
+            }),
+            (_, Some(e))
+                if (e.width(), e.height()) != (frame.depth.width(), frame.depth.height()) =>
+            {
+                Err(MapError::EmbeddingSize {
+                    frame: frame.index,
+                    embeddings: (e.width(), e.height()),
+                    depth: (frame.depth.width(), frame.depth.height()),
+                })
+            }
+            _ => Ok(()),
+        }
+    }
+
+    /// Back-projects, quantises and groups the valid pixels into 2D segments.
+    fn observe(&self, obs: &Observation<'_>) -> Observed {
+        let frame = obs.frame;
+        let k = &frame.intrinsics;
+        let (w, h) = (frame.depth.width(), frame.depth.height());
+        let to_map = Rigid::from_pose(obs.pose);
+        let (fx, fy, cx, cy) = (k.fx as f32, k.fy as f32, k.cx as f32, k.cy as f32);
+        let depth = frame.depth.as_raw();
+        let dim = self.dim;
+        let mut cells: HashMap<CellKey, ([u32; 3], u32)> = HashMap::new();
+        // BTreeMap: 2D segments in label order, so integration is deterministic.
+        let mut groups: BTreeMap<u32, Accumulator> = BTreeMap::new();
+        let mut scratch = vec![0.0f32; dim];
+        let mut pixels = 0;
+        for v in 0..h {
+            for u in 0..w {
+                let pixel = (v * w + u) as usize;
+                let Some(z) = vlem_core::types::valid_depth(depth[pixel]) else {
+                    continue;
+                };
+                if z > self.config.max_depth {
+                    continue;
+                }
+                let label = match obs.embeddings {
+                    Some(e) => match pixel_label(e, u, v) {
+                        Some(label) => label,
+                        None => continue,
+                    },
+                    None => (v / GEOMETRY_TILE) * w.div_ceil(GEOMETRY_TILE) + u / GEOMETRY_TILE,
+                };
+                let acc = groups.entry(label).or_default();
+                if let Some(e) = obs.embeddings {
+                    match e.layout() {
+                        EmbeddingLayout::Segments { .. } => {
+                            if acc.embedding.is_empty()
+                                && let Some(row) = e.segment_row(u, v)
+                            {
+                                acc.embedding.extend_from_slice(row);
+                            }
+                        }
+                        EmbeddingLayout::PatchGrid { .. } => {
+                            if !e.embedding_at(u, v, &mut scratch) {
+                                continue;
+                            }
+                            if acc.embedding.is_empty() {
+                                acc.embedding.resize(dim, 0.0);
+                            }
+                            acc.embedding
+                                .iter_mut()
+                                .zip(&scratch)
+                                .for_each(|(a, b)| *a += b);
+                        }
+                    }
+                }
+                let p = [(u as f32 - cx) * z / fx, (v as f32 - cy) * z / fy, z];
+                let key = cell_key(to_map.apply(p), self.spacing);
+                acc.cells.push(key);
+                let c = frame.colour.at_index(pixel);
+                let entry = cells.entry(key).or_insert(([0; 3], 0));
+                for (s, x) in entry.0.iter_mut().zip(c) {
+                    *s += u32::from(x);
+                }
+                entry.1 += 1;
+                pixels += 1;
+            }
+        }
+        let segments = groups
+            .into_values()
+            .filter_map(|mut acc| {
+                // A patch mean that cancels out carries no direction: drop the segment.
+                if dim > 0 && !normalise(&mut acc.embedding) {
+                    return None;
+                }
+                acc.cells.sort_unstable();
+                acc.cells.dedup();
+                (!acc.cells.is_empty()).then_some(Segment2d {
+                    cells: acc.cells,
+                    embedding: acc.embedding,
+                })
+            })
+            .collect();
+        Observed {
+            cells,
+            segments,
+            pixels,
+        }
+    }
+
+    /// For every 2D segment, the 3D segment it is matched with.
+    fn associate(&self, observed: &Observed) -> Vec<Option<u64>> {
+        // Cells of each 3D segment that this frame observed.
+        let mut in_frame: HashMap<u64, usize> = HashMap::new();
+        for key in observed.cells.keys() {
+            if let Some(&id) = self.owner.get(key) {
+                *in_frame.entry(id).or_default() += 1;
+            }
+        }
+        let mut rows = Vec::new();
+        let mut overlaps: Vec<Vec<(u64, usize)>> = Vec::new();
+        let mut cols: Vec<u64> = Vec::new();
+        for (i, s) in observed.segments.iter().enumerate() {
+            let mut counts: BTreeMap<u64, usize> = BTreeMap::new();
+            for key in &s.cells {
+                if let Some(&id) = self.owner.get(key) {
+                    *counts.entry(id).or_default() += 1;
+                }
+            }
+            if !counts.is_empty() {
+                cols.extend(counts.keys());
+                rows.push(i);
+                overlaps.push(counts.into_iter().collect());
+            }
+        }
+        let mut matches = vec![None; observed.segments.len()];
+        if rows.is_empty() {
+            return matches;
+        }
+        cols.sort_unstable();
+        cols.dedup();
+        let min_overlap = f64::from(self.config.min_overlap);
+        let mut cost = vec![0.0f64; rows.len() * cols.len()];
+        let mut score = vec![0.0f64; rows.len() * cols.len()];
+        for (r, (&i, counts)) in rows.iter().zip(&overlaps).enumerate() {
+            let size = observed.segments[i].cells.len();
+            for &(id, overlap) in counts {
+                let Ok(c) = cols.binary_search(&id) else {
+                    continue;
+                };
+                let seen = in_frame.get(&id).copied().unwrap_or(overlap);
+                let s = overlap as f64 / size.min(seen).max(1) as f64;
+                score[r * cols.len() + c] = s;
+                // Pairs below the threshold are no edge, so they never displace a valid pair.
+                if s >= min_overlap {
+                    cost[r * cols.len() + c] = -s;
+                }
+            }
+        }
+        for (r, c) in hungarian(&cost, rows.len(), cols.len())
+            .into_iter()
+            .enumerate()
+        {
+            if let Some(c) = c
+                && score[r * cols.len() + c] >= min_overlap
+            {
+                matches[rows[r]] = Some(cols[c]);
+            }
+        }
+        matches
+    }
+
+    /// Adds `segment` as a new 3D segment; returns its id.
+    fn add_segment(&mut self, embedding: &[f32], segment: Segment) -> u64 {
+        let id = self.next_id;
+        self.next_id += 1;
+        if self.dim > 0 {
+            self.embeddings.push(embedding);
+            self.row_ids.push(id);
+        }
+        for key in segment.cells.keys() {
+            self.owner.insert(*key, id);
+        }
+        self.segments.insert(id, segment);
+        id
+    }
+
+    fn remove_segment(&mut self, id: u64) {
+        let Some(segment) = self.segments.remove(&id) else {
+            return;
+        };
+        for key in segment.cells.keys() {
+            self.owner.remove(key);
+        }
+        if self.dim > 0 {
+            let row = segment.row;
+            self.embeddings.swap_remove(row);
+            self.row_ids.swap_remove(row);
+            if let Some(&moved) = self.row_ids.get(row)
+                && let Some(s) = self.segments.get_mut(&moved)
+            {
+                s.row = row;
+            }
+        }
+    }
+
+    /// Evicts stale segments, then coarsens the grid, until the budget holds. Segments seen at
+    /// frame `now` or later are not evicted. Returns the number of cells removed.
+    fn enforce_budget(&mut self, now: u64) -> usize {
+        let budget = self.config.max_points;
+        let before = self.owner.len();
+        if before <= budget {
+            return 0;
+        }
+        let mut stale: Vec<(u64, usize, u64)> = self
+            .segments
+            .iter()
+            .filter(|(_, s)| s.last_seen < now)
+            .map(|(&id, s)| (s.last_seen, s.cells.len(), id))
+            .collect();
+        stale.sort_unstable();
+        for (_, _, id) in stale {
+            if self.owner.len() <= budget {
+                break;
+            }
+            self.remove_segment(id);
+        }
+        while self.owner.len() > budget {
+            self.coarsen();
+        }
+        before - self.owner.len()
+    }
+
+    /// Doubles the grid spacing: cells are merged into the coarser cell (mean colour, position at
+    /// its centre), a coarse cell keeps the first segment (in creation order) that claims it, and
+    /// segments left without cells are removed.
+    fn coarsen(&mut self) {
+        self.spacing *= 2.0;
+        let spacing = self.spacing;
+        self.owner.clear();
+        let mut empty = Vec::new();
+        for (&id, segment) in &mut self.segments {
+            let mut merged: BTreeMap<CellKey, ([u32; 3], u32)> = BTreeMap::new();
+            for cell in segment.cells.values() {
+                let key = cell_key(cell.position, spacing);
+                match self.owner.get(&key) {
+                    Some(&other) if other != id => continue,
+                    _ => {}
+                }
+                self.owner.insert(key, id);
+                let entry = merged.entry(key).or_insert(([0; 3], 0));
+                for (s, x) in entry.0.iter_mut().zip(cell.colour) {
+                    *s += u32::from(x);
+                }
+                entry.1 += 1;
+            }
+            segment.cells = merged
+                .into_iter()
+                .map(|(key, (sum, n))| {
+                    let colour = sum.map(|s| (s / n.max(1)) as u8);
+                    (
+                        key,
+                        Cell {
+                            position: cell_centre(key, spacing),
+                            colour,
+                        },
+                    )
+                })
+                .collect();
+            if segment.cells.is_empty() {
+                empty.push(id);
+            }
+        }
+        for id in empty {
+            self.remove_segment(id);
+        }
+    }
+
+    fn fuse_colour(&self, colour: &mut [u8; 3], observed: [u8; 3]) {
+        let w = self.config.map_weight;
+        for (c, p) in colour.iter_mut().zip(observed) {
+            *c = ((1.0 - w) * f32::from(p) + w * f32::from(*c)).round() as u8;
+        }
+    }
+}
+
+/// The 2D segment label of a pixel: the encoder's segment id, or the patch containing the pixel
+/// (nearest patch centre) for a patch grid. `None` for pixels without an embedding.
+fn pixel_label(e: &PixelEmbeddings, u: u32, v: u32) -> Option<u32> {
+    match e.layout() {
+        EmbeddingLayout::Segments { index, .. } => {
+            let s = *index.get((v * e.width() + u) as usize)?;
+            (s != vlem_core::NO_SEGMENT).then_some(s)
+        }
+        EmbeddingLayout::PatchGrid {
+            grid_width,
+            grid_height,
+            ..
+        } => {
+            // Patch centres sit at (i + 0.5) * width / grid_width, so the nearest one to the pixel
+            // centre is the patch that contains it.
+            let cell = |p: u32, size: u32, n: u32| {
+                (((p as f32 + 0.5) * n as f32 / size as f32) as u32).min(n - 1)
+            };
+            let (i, j) = (
+                cell(u, e.width(), *grid_width),
+                cell(v, e.height(), *grid_height),
+            );
+            Some(j * grid_width + i)
+        }
+    }
+}
+
+/// Minimum-cost assignment on a dense `rows x cols` cost matrix (row-major) by the Hungarian
+/// (Kuhn–Munkres) algorithm with potentials, O(n² m) for n = min, m = max of the two sizes.
+/// Returns the column assigned to each row; with more rows than columns some rows get `None`.
+pub fn hungarian(cost: &[f64], rows: usize, cols: usize) -> Vec<Option<usize>> {
+    if rows == 0 || cols == 0 || cost.len() != rows * cols {
+        return vec![None; rows];
+    }
+    if rows > cols {
+        // Solve the transpose (the algorithm needs rows <= columns) and invert the assignment.
+        let transposed: Vec<f64> = (0..cols)
+            .flat_map(|c| (0..rows).map(move |r| cost[r * cols + c]))
+            .collect();
+        let mut out = vec![None; rows];
+        for (c, r) in hungarian(&transposed, cols, rows).into_iter().enumerate() {
+            if let Some(r) = r {
+                out[r] = Some(c);
+            }
+        }
+        return out;
+    }
+    let (n, m) = (rows, cols);
+    let a = |i: usize, j: usize| cost[(i - 1) * m + (j - 1)];
+    // 1-based with a virtual column 0, as in the classic formulation.
+    let (mut u, mut v) = (vec![0.0f64; n + 1], vec![0.0f64; m + 1]);
+    let (mut p, mut way) = (vec![0usize; m + 1], vec![0usize; m + 1]);
+    for i in 1..=n {
+        p[0] = i;
+        let mut j0 = 0;
+        let mut minv = vec![f64::INFINITY; m + 1];
+        let mut used = vec![false; m + 1];
+        loop {
+            used[j0] = true;
+            let i0 = p[j0];
+            let mut delta = f64::INFINITY;
+            let mut j1 = 0;
+            for j in 1..=m {
+                if !used[j] {
+                    let cur = a(i0, j) - u[i0] - v[j];
+                    if cur < minv[j] {
+                        minv[j] = cur;
+                        way[j] = j0;
+                    }
+                    if minv[j] < delta {
+                        delta = minv[j];
+                        j1 = j;
+                    }
+                }
+            }
+            if j1 == 0 {
+                // Only reachable with non-finite costs: stop rather than loop.
+                break;
+            }
+            for j in 0..=m {
+                if used[j] {
+                    u[p[j]] += delta;
+                    v[j] -= delta;
+                } else {
+                    minv[j] -= delta;
+                }
+            }
+            j0 = j1;
+            if p[j0] == 0 {
+                break;
+            }
+        }
+        while j0 != 0 {
+            let j1 = way[j0];
+            p[j0] = p[j1];
+            j0 = j1;
+        }
+    }
+    let mut out = vec![None; rows];
+    for j in 1..=m {
+        if p[j] != 0 {
+            out[p[j] - 1] = Some(j - 1);
+        }
+    }
+    out
+}
+
+impl EmbeddingMap for SegmentMap {
+    fn name(&self) -> &'static str {
+        NAME
+    }
+
+    fn dim(&self) -> usize {
+        self.dim
+    }
+
+    fn integrate(&mut self, obs: &Observation<'_>) -> vlem_core::Result<IntegrationStats> {
+        self.check(obs)
+            .map_err(|e| CoreError::stage(StageKind::Map, NAME, e))?;
+        let observed = self.observe(obs);
+        self.frames += 1;
+        let now = self.frames as u64;
+        let mut stats = IntegrationStats {
+            observed: observed.pixels,
+            ..IntegrationStats::default()
+        };
+        if observed.segments.is_empty() {
+            return Ok(stats);
+        }
+        let matches = self.associate(&observed);
+        // Observed cells that already have an owner: fuse their colour, mark the owner seen.
+        for (key, (sum, n)) in &observed.cells {
+            let Some(&id) = self.owner.get(key) else {
+                continue;
+            };
+            let mean = sum.map(|s| (s / (*n).max(1)) as u8);
+            let mut colour = None;
+            if let Some(cell) = self.segments.get(&id).and_then(|s| s.cells.get(key)) {
+                let mut c = cell.colour;
+                self.fuse_colour(&mut c, mean);
+                colour = Some(c);
+            }
+            if let Some(s) = self.segments.get_mut(&id) {
+                s.last_seen = now;
+                if let (Some(c), Some(cell)) = (colour, s.cells.get_mut(key)) {
+                    cell.colour = c;
+                }
+            }
+        }
+        let new_cell = |key: CellKey, spacing: f32| {
+            let (sum, n) = observed.cells.get(&key).copied().unwrap_or(([0; 3], 1));
+            Cell {
+                position: cell_centre(key, spacing),
+                colour: sum.map(|s| (s / n.max(1)) as u8),
+            }
+        };
+        let mut scratch = vec![0.0f32; self.dim];
+        // Matched 2D segments first, so their cells go to the segments they continue.
+        for (s2d, id) in observed.segments.iter().zip(&matches) {
+            let Some(id) = *id else { continue };
+            let Some(row) = self.segments.get(&id).map(|s| s.row) else {
+                continue;
+            };
+            if self.dim > 0 {
+                self.embeddings.row_into(row, &mut scratch);
+                fuse_into(&mut scratch, &s2d.embedding, self.config.map_weight);
+                self.embeddings.set_row(row, &scratch);
+            }
+            let fresh: Vec<CellKey> = s2d
+                .cells
+                .iter()
+                .filter(|k| !self.owner.contains_key(*k))
+                .copied()
+                .collect();
+            stats.inserted += fresh.len();
+            for &key in &fresh {
+                self.owner.insert(key, id);
+            }
+            let spacing = self.spacing;
+            if let Some(s) = self.segments.get_mut(&id) {
+                s.last_seen = now;
+                s.cells
+                    .extend(fresh.into_iter().map(|k| (k, new_cell(k, spacing))));
+                stats.fused += s.cells.len();
+            }
+        }
+        for (s2d, id) in observed.segments.iter().zip(&matches) {
+            if id.is_some() {
+                continue;
+            }
+            let cells: BTreeMap<CellKey, Cell> = s2d
+                .cells
+                .iter()
+                .filter(|k| !self.owner.contains_key(*k))
+                .map(|&k| (k, new_cell(k, self.spacing)))
+                .collect();
+            if cells.len() < self.config.min_cells {
+                continue;
+            }
+            stats.inserted += cells.len();
+            let segment = Segment {
+                row: self.embeddings.rows(),
+                last_seen: now,
+                cells,
+            };
+            self.add_segment(&s2d.embedding, segment);
+        }
+        stats.removed = self.enforce_budget(now);
+        Ok(stats)
+    }
+
+    fn len(&self) -> usize {
+        self.owner.len()
+    }
+
+    fn memory_bytes(&self) -> usize {
+        use std::mem::size_of;
+        // Hash map: one control byte per bucket besides the entry; B-tree nodes are counted by
+        // their entries (node overhead is small next to them).
+        let owner = self.owner.capacity() * (size_of::<(CellKey, u64)>() + 1);
+        let cells: usize = self
+            .segments
+            .values()
+            .map(|s| s.cells.len() * (size_of::<CellKey>() + size_of::<Cell>()))
+            .sum();
+        let segments = self.segments.len() * (size_of::<u64>() + size_of::<Segment>());
+        self.embeddings.memory_bytes()
+            + self.row_ids.capacity() * size_of::<u64>()
+            + owner
+            + cells
+            + segments
+    }
+
+    fn similarity(&self, text: &[f32], out: &mut Vec<f32>) -> vlem_core::Result<()> {
+        let mut per_segment = Vec::new();
+        self.embeddings.similarity(text, &mut per_segment)?;
+        out.clear();
+        out.reserve(self.owner.len());
+        for s in self.segments.values() {
+            let score = per_segment.get(s.row).copied().unwrap_or(0.0);
+            out.extend(std::iter::repeat_n(score, s.cells.len()));
+        }
+        Ok(())
+    }
+
+    fn snapshot(&self) -> MapSnapshot {
+        let n = self.owner.len();
+        let mut positions = Vec::with_capacity(n);
+        let mut colours = Vec::with_capacity(n);
+        let mut embeddings = Vec::with_capacity(n * self.dim);
+        let mut row = vec![0.0f32; self.dim];
+        for s in self.segments.values() {
+            if self.dim > 0 {
+                self.embeddings.row_into(s.row, &mut row);
+            }
+            for cell in s.cells.values() {
+                positions.push(cell.position);
+                colours.push(cell.colour);
+                embeddings.extend_from_slice(&row);
+            }
+        }
+        MapSnapshot {
+            map_kind: NAME.into(),
+            dim: self.dim,
+            positions,
+            colours,
+            embeddings,
+            metadata: MapMetadata {
+                frames_integrated: self.frames,
+                ..MapMetadata::default()
+            },
+        }
+    }
+
+    /// Rebuilds segments from a snapshot: consecutive points with bit-identical embeddings and
+    /// increasing cell keys form one segment (a map's own snapshot lists each segment's cells in
+    /// key order). A point in a cell already taken is dropped (only foreign snapshots have such).
+    fn restore(&mut self, snapshot: MapSnapshot) -> vlem_core::Result<()> {
+        snapshot.validate()?;
+        if snapshot.dim != self.dim {
+            return Err(CoreError::DimensionMismatch {
+                what: format!("snapshot of map `{}`", snapshot.map_kind),
+                expected: self.dim,
+                actual: snapshot.dim,
+            });
+        }
+        *self = Self::new(self.config.clone(), self.dim);
+        self.frames = snapshot.metadata.frames_integrated;
+        // Restored segments count as seen in the last frame: over budget, the grid coarsens.
+        let now = self.frames as u64;
+        let d = self.dim;
+        let row_of = |i: usize| &snapshot.embeddings[i * d..(i + 1) * d];
+        let mut current: Option<(usize, BTreeMap<CellKey, Cell>, CellKey)> = None;
+        for (i, (&position, &colour)) in
+            snapshot.positions.iter().zip(&snapshot.colours).enumerate()
+        {
+            let key = cell_key(position, self.spacing);
+            let continues = current.as_ref().is_some_and(|(first, _, last)| {
+                key > *last
+                    && row_of(*first)
+                        .iter()
+                        .zip(row_of(i))
+                        .all(|(a, b)| a.to_bits() == b.to_bits())
+            });
+            if !continues && let Some((first, cells, _)) = current.take() {
+                self.restore_segment(row_of(first), cells, now);
+            }
+            let (_, cells, last) = current.get_or_insert_with(|| (i, BTreeMap::new(), key));
+            if self.owner.contains_key(&key) || cells.contains_key(&key) {
+                continue;
+            }
+            cells.insert(key, Cell { position, colour });
+            *last = key;
+        }
+        if let Some((first, cells, _)) = current.take() {
+            self.restore_segment(row_of(first), cells, now);
+        }
+        let _ = self.enforce_budget(now);
+        Ok(())
+    }
+}
+
+impl SegmentMap {
+    fn restore_segment(&mut self, embedding: &[f32], cells: BTreeMap<CellKey, Cell>, now: u64) {
+        if cells.is_empty() {
+            return;
+        }
+        let segment = Segment {
+            row: self.embeddings.rows(),
+            last_seen: now,
+            cells,
+        };
+        self.add_segment(embedding, segment);
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use rand::{Rng, SeedableRng};
+    use vlem_core::{DepthImage, Frame, Intrinsics, Pose, RgbImage};
+
+    const DIM: usize = 4;
+
+    /// A 16x12 fronto-parallel plane; at 1 m a pixel covers 5 cm.
+    fn plane(depth: f32) -> Frame {
+        let k = Intrinsics::new(16, 12, 20.0, 20.0, 7.5, 5.5).unwrap();
+        Frame::new(
+            0,
+            0.0,
+            RgbImage::filled(16, 12, [200, 100, 0]),
+            DepthImage::new(16, 12, vec![depth; 16 * 12]).unwrap(),
+            k,
+            None,
+        )
+        .unwrap()
+    }
+
+    fn uniform(e: [f32; DIM]) -> PixelEmbeddings {
+        PixelEmbeddings::from_segments(16, 12, DIM, vec![0; 16 * 12], e.to_vec()).unwrap()
+    }
+
+    /// Columns below `split` are segment 0, the rest segment 1.
+    fn split(split: u32, a: [f32; DIM], b: [f32; DIM]) -> PixelEmbeddings {
+        let index = (0..16 * 12).map(|i| u32::from(i % 16 >= split)).collect();
+        PixelEmbeddings::from_segments(16, 12, DIM, index, [a, b].concat()).unwrap()
+    }
+
+    fn config() -> SegmentConfig {
+        // Cells coarser than the pixel footprint, so every cell is hit in every frame.
+        SegmentConfig {
+            point_spacing: 0.1,
+            min_cells: 3,
+            ..SegmentConfig::default()
+        }
+    }
+
+    fn integrate(m: &mut SegmentMap, f: &Frame, e: &PixelEmbeddings) -> IntegrationStats {
+        m.integrate(&Observation {
+            frame: f,
+            pose: &Pose::identity(),
+            embeddings: Some(e),
+        })
+        .unwrap()
+    }
+
+    fn total(cost: &[f64], cols: usize, assignment: &[Option<usize>]) -> f64 {
+        assignment
+            .iter()
+            .enumerate()
+            .filter_map(|(r, c)| c.map(|c| cost[r * cols + c]))
+            .sum()
+    }
+
+    /// The best assignment of every row (rows <= cols) by trying all injections.
+    fn brute_force(cost: &[f64], rows: usize, cols: usize) -> f64 {
+        fn go(cost: &[f64], r: usize, rows: usize, cols: usize, used: &mut [bool]) -> f64 {
+            if r == rows {
+                return 0.0;
+            }
+            let mut best = f64::INFINITY;
+            for c in 0..cols {
+                if !used[c] {
+                    used[c] = true;
+                    best = best.min(cost[r * cols + c] + go(cost, r + 1, rows, cols, used));
+                    used[c] = false;
+                }
+            }
+            best
+        }
+        go(cost, 0, rows, cols, &mut vec![false; cols])
+    }
+
+    #[test]
+    fn hungarian_solves_hand_computed_matrices() {
+        // Square: 1 + 2 + 2 = 5 beats every other permutation.
+        let cost = [4.0, 1.0, 3.0, 2.0, 0.0, 5.0, 3.0, 2.0, 2.0];
+        assert_eq!(hungarian(&cost, 3, 3), vec![Some(1), Some(0), Some(2)]);
+        // Wide: r0 -> c1 (2) + r1 -> c0 (2) = 4 beats 1 + 4 and 3 + 2.
+        let cost = [1.0, 2.0, 3.0, 2.0, 4.0, 6.0];
+        assert_eq!(hungarian(&cost, 2, 3), vec![Some(1), Some(0)]);
+        // Tall: the same two rows plus one that is too expensive to use.
+        let cost = [1.0, 2.0, 2.0, 4.0, 9.0, 9.0];
+        assert_eq!(hungarian(&cost, 3, 2), vec![Some(1), Some(0), None]);
+        assert_eq!(hungarian(&[], 0, 3), Vec::<Option<usize>>::new());
+        assert_eq!(hungarian(&[], 2, 0), vec![None, None]);
+    }
+
+    #[test]
+    fn hungarian_matches_brute_force_on_random_matrices() {
+        let mut rng = rand::rngs::StdRng::seed_from_u64(7);
+        for _ in 0..200 {
+            let rows = rng.random_range(1..=5);
+            let cols = rng.random_range(1..=5);
+            let cost: Vec<f64> = (0..rows * cols)
+                .map(|_| f64::from(rng.random_range(-10i32..10)))
+                .collect();
+            let a = hungarian(&cost, rows, cols);
+            let assigned: Vec<usize> = a.iter().flatten().copied().collect();
+            assert_eq!(assigned.len(), rows.min(cols));
+            let mut unique = assigned.clone();
+            unique.sort_unstable();
+            unique.dedup();
+            assert_eq!(unique.len(), assigned.len(), "a column used twice");
+            let best = if rows <= cols {
+                brute_force(&cost, rows, cols)
+            } else {
+                let cost = &cost;
+                let t: Vec<f64> = (0..cols)
+                    .flat_map(|c| (0..rows).map(move |r| cost[r * cols + c]))
+                    .collect();
+                brute_force(&t, cols, rows)
+            };
+            assert_eq!(total(&cost, cols, &a), best, "{rows}x{cols} {cost:?}");
+        }
+    }
+
+    #[test]
+    fn re_observing_a_frame_creates_nothing_and_fuses_by_the_formula() {
+        let mut m = SegmentConfig {
+            map_weight: 0.25,
+            ..config()
+        }
+        .build(Some(DIM))
+        .unwrap();
+        let f = plane(1.0);
+        let first = integrate(
+            &mut m,
+            &f,
+            &split(8, [1.0, 0.0, 0.0, 0.0], [0.0, 0.0, 1.0, 0.0]),
+        );
+        assert_eq!(m.segment_count(), 2);
+        assert_eq!(first.inserted, m.len());
+        let cells = m.len();
+        let second = integrate(
+            &mut m,
+            &f,
+            &split(8, [0.0, 1.0, 0.0, 0.0], [0.0, 0.0, 0.0, 1.0]),
+        );
+        assert_eq!((second.inserted, second.removed), (0, 0));
+        assert_eq!((m.segment_count(), m.len()), (2, cells));
+        // e = normalise(0.75 e_obs + 0.25 e_map)
+        let n = (0.75f32 * 0.75 + 0.25 * 0.25).sqrt();
+        let (a, b) = (0.25 / n, 0.75 / n);
+        let e = m.segment_embeddings();
+        let expected = [a, b, 0.0, 0.0, 0.0, 0.0, a, b];
+        for (x, y) in e.iter().zip(expected) {
+            assert!((x - y).abs() < 1e-6, "{e:?}");
+        }
+        // Every point carries its segment's embedding, and scores follow it.
+        let mut scores = Vec::new();
+        m.similarity(&[0.0, 1.0, 0.0, 0.0], &mut scores).unwrap();
+        assert_eq!(scores.len(), m.len());
+        assert!(
+            scores
+                .iter()
+                .all(|s| (s - (b + 1.0) / 2.0).abs() < 1e-6 || (s - 0.5).abs() < 1e-6)
+        );
+    }
+
+    #[test]
+    fn a_second_object_without_overlap_becomes_a_new_segment() {
+        let mut m = config().build(Some(DIM)).unwrap();
+        let e = uniform([1.0, 0.0, 0.0, 0.0]);
+        integrate(&mut m, &plane(1.0), &e);
+        let (n, before) = (m.len(), m.snapshot());
+        // Half a metre further away: no cell in common.
+        let stats = integrate(&mut m, &plane(1.5), &uniform([0.0, 1.0, 0.0, 0.0]));
+        assert_eq!(m.segment_count(), 2);
+        assert_eq!(stats.inserted, m.len() - n);
+        // The first segment is untouched.
+        let after = m.snapshot();
+        assert_eq!(after.positions[..n], before.positions[..]);
+        assert_eq!(after.embeddings[..n * DIM], before.embeddings[..]);
+    }
+
+    #[test]
+    fn the_budget_evicts_the_stalest_then_the_smallest_segments() {
+        let (a_small, a_big) = ([1.0, 0.0, 0.0, 0.0], [0.0, 1.0, 0.0, 0.0]);
+        let b = uniform([0.0, 0.0, 1.0, 0.0]);
+        let run = |max_points| {
+            let mut m = SegmentConfig {
+                max_points,
+                ..config()
+            }
+            .build(Some(DIM))
+            .unwrap();
+            integrate(&mut m, &plane(1.0), &split(4, a_small, a_big));
+            let sizes: Vec<usize> = m.segments.values().map(|s| s.cells.len()).collect();
+            integrate(&mut m, &plane(3.0), &b);
+            (m, sizes)
+        };
+        let (all, sizes) = run(1_000_000);
+        assert_eq!(all.segment_count(), 3);
+        assert!(sizes[0] < sizes[1], "{sizes:?}");
+        let newest = all.len() - sizes[0] - sizes[1];
+        // Room for the newest and the big old segment: the small old one goes.
+        let (m, _) = run(newest + sizes[1]);
+        assert_eq!(m.len(), newest + sizes[1]);
+        assert_eq!(
+            m.segment_embeddings(),
+            [a_big, [0.0, 0.0, 1.0, 0.0]].concat()
+        );
+        // Room for the newest only: both old segments go, the grid stays as it is.
+        let (m, _) = run(newest);
+        assert_eq!(m.segment_embeddings(), vec![0.0, 0.0, 1.0, 0.0]);
+        assert_eq!(m.spacing(), 0.1);
+    }
+
+    #[test]
+    fn a_frame_over_the_budget_coarsens_the_grid() {
+        let mut m = SegmentConfig {
+            max_points: 10,
+            ..config()
+        }
+        .build(Some(DIM))
+        .unwrap();
+        let stats = integrate(
+            &mut m,
+            &plane(1.0),
+            &split(8, [1.0, 0.0, 0.0, 0.0], [0.0, 1.0, 0.0, 0.0]),
+        );
+        assert!(m.len() <= 10 && !m.is_empty(), "{} cells", m.len());
+        assert!(m.spacing() > 0.1);
+        assert_eq!(stats.inserted - stats.removed, m.len());
+        let snap = m.snapshot();
+        for row in snap.embeddings.chunks_exact(DIM) {
+            assert!(row == [1.0, 0.0, 0.0, 0.0] || row == [0.0, 1.0, 0.0, 0.0]);
+        }
+    }
+
+    #[test]
+    fn patch_grids_group_pixels_by_patch() {
+        let mut m = config().build(Some(DIM)).unwrap();
+        // Two patches, left and right half.
+        let e = PixelEmbeddings::from_patch_grid(
+            16,
+            12,
+            DIM,
+            2,
+            1,
+            vec![1.0, 0.0, 0.0, 0.0, 0.0, 1.0, 0.0, 0.0],
+        )
+        .unwrap();
+        integrate(&mut m, &plane(1.0), &e);
+        assert_eq!(m.segment_count(), 2);
+        let e = m.segment_embeddings();
+        // Interpolated pixel embeddings lean towards their own patch.
+        assert!(e[0] > e[1] && e[5] > e[4], "{e:?}");
+        for row in e.chunks_exact(DIM) {
+            assert!((row.iter().map(|x| x * x).sum::<f32>() - 1.0).abs() < 1e-5);
+        }
+    }
+
+    #[test]
+    fn restore_round_trips_the_snapshot_in_order() {
+        let mut m = config().build(Some(DIM)).unwrap();
+        integrate(
+            &mut m,
+            &plane(1.0),
+            &split(8, [1.0, 0.0, 0.0, 0.0], [0.0, 1.0, 0.0, 0.0]),
+        );
+        // A later segment with the same embedding as the first stays a segment of its own.
+        integrate(&mut m, &plane(2.0), &uniform([1.0, 0.0, 0.0, 0.0]));
+        let snap = m.snapshot();
+        let mut fresh = config().build(Some(DIM)).unwrap();
+        fresh.restore(snap.clone()).unwrap();
+        assert_eq!(fresh.snapshot(), snap);
+        assert_eq!(fresh.segment_count(), 3);
+    }
+
+    #[test]
+    fn f16_storage_keeps_the_query_ranking() {
+        let mut maps = [Precision::F32, Precision::F16].map(|precision| {
+            SegmentConfig {
+                precision,
+                ..config()
+            }
+            .build(Some(DIM))
+            .unwrap()
+        });
+        let f = plane(1.0);
+        let a = split(5, [0.9, 0.1, 0.3, 0.2], [0.1, 0.8, 0.2, 0.4]);
+        let b = split(5, [0.5, 0.5, 0.1, 0.7], [0.3, 0.3, 0.6, 0.2]);
+        for m in &mut maps {
+            integrate(m, &f, &a);
+            integrate(m, &f, &b);
+            integrate(m, &plane(2.0), &uniform([0.2, 0.2, 0.9, 0.1]));
+        }
+        let text = [0.6, 0.2, 0.7, 0.3];
+        let (mut s32, mut s16) = (Vec::new(), Vec::new());
+        maps[0].similarity(&text, &mut s32).unwrap();
+        maps[1].similarity(&text, &mut s16).unwrap();
+        assert_eq!(s32.len(), s16.len());
+        let tie = 2.0 * 2f32.powi(-12);
+        for i in 0..s32.len() {
+            for j in 0..s32.len() {
+                if s32[i] - s32[j] > tie {
+                    assert!(s16[i] > s16[j], "points {i} and {j} swap at f16");
+                }
+            }
+        }
+        assert!(
+            s32.iter().any(|x| (x - s32[0]).abs() > 0.01),
+            "the test needs distinct scores"
+        );
+        assert_eq!(
+            maps[0].embeddings.memory_bytes(),
+            2 * maps[1].embeddings.memory_bytes()
+        );
+    }
+
+    #[test]
+    fn geometry_only_maps_group_pixels_in_tiles() {
+        let mut m = config().build(None).unwrap();
+        let f = plane(1.0);
+        let obs = Observation {
+            frame: &f,
+            pose: &Pose::identity(),
+            embeddings: None,
+        };
+        m.integrate(&obs).unwrap();
+        let n = m.len();
+        m.integrate(&obs).unwrap();
+        assert_eq!((m.len(), m.segment_count()), (n, 1));
+        assert!(m.snapshot().colours.iter().all(|c| *c == [200, 100, 0]));
+        assert!(m.similarity(&[], &mut Vec::new()).is_err());
+        let mut fresh = config().build(None).unwrap();
+        fresh.restore(m.snapshot()).unwrap();
+        assert_eq!(fresh.snapshot().positions, m.snapshot().positions);
+    }
+
+    #[test]
+    fn invalid_parameters_are_named() {
+        let cases = [
+            (
+                SegmentConfig {
+                    max_points: 0,
+                    ..SegmentConfig::default()
+                },
+                "max_points",
+            ),
+            (
+                SegmentConfig {
+                    point_spacing: 0.0,
+                    ..SegmentConfig::default()
+                },
+                "point_spacing",
+            ),
+            (
+                SegmentConfig {
+                    min_overlap: 0.0,
+                    ..SegmentConfig::default()
+                },
+                "min_overlap",
+            ),
+            (
+                SegmentConfig {
+                    min_cells: 0,
+                    ..SegmentConfig::default()
+                },
+                "min_cells",
+            ),
+            (
+                SegmentConfig {
+                    map_weight: 1.5,
+                    ..SegmentConfig::default()
+                },
+                "map_weight",
+            ),
+            (
+                SegmentConfig {
+                    max_depth: f32::NAN,
+                    ..SegmentConfig::default()
+                },
+                "max_depth",
+            ),
+        ];
+        for (config, name) in cases {
+            let err = config.build(Some(DIM)).unwrap_err().to_string();
+            assert!(
+                err.starts_with(&format!("map `segment`: parameter `{name}`")),
+                "{err}"
+            );
+        }
+        let err = SegmentConfig {
+            dim: Some(512),
+            ..SegmentConfig::default()
+        }
+        .build(Some(DIM))
+        .unwrap_err();
+        assert_eq!(
+            err.to_string(),
+            "map `segment`: parameter `dim` is 512 but the encoder produces 4-d embeddings: \
+             remove `dim` or set it to 4"
+        );
+        let table: toml::Table = toml::from_str("min_overlap = 0.5\nspacing = 1.0").unwrap();
+        assert!(parse_params::<SegmentConfig>(StageKind::Map, NAME, &table).is_err());
+    }
+}

@@ -79,11 +79,7 @@ impl EmbeddingStore {
 
     /// Number of rows (0 for a dimension-0 table).
     pub fn rows(&self) -> usize {
-        if self.dim == 0 {
-            0
-        } else {
-            self.value_count() / self.dim
-        }
+        self.value_count().checked_div(self.dim).unwrap_or(0)
     }
 
     /// Bytes allocated for the values.
@@ -336,7 +332,8 @@ mod tests {
             });
             let mut row = [0.0; 2];
             s.row_into(0, &mut row);
-            assert!((row[0] - 0.7071).abs() < 1e-3 && (row[1] - 0.7071).abs() < 1e-3);
+            let half = std::f32::consts::FRAC_1_SQRT_2;
+            assert!((row[0] - half).abs() < 1e-3 && (row[1] - half).abs() < 1e-3);
             s.swap_remove(0);
             assert_eq!(s.rows(), 2);
             s.row_into(0, &mut row);

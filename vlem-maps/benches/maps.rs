@@ -1,0 +1,115 @@
+//! The three maps side by side on one sequence: integration and query time per frame, points and
+//! bytes per point, in f32 and f16 (`cargo bench -p vlem-maps --bench maps`).
+//!
+//! Frames: the shared 150-frame living-room sequence (`../shared/data/icl-livingroom1`), or the
+//! committed 30 frames when it is absent; `VLEM_BENCH_FRAMES=N` uses the first N. Embeddings: 512-d,
+//! 300 segments per frame (32x32-pixel blocks) with random unit rows that stay fixed per block over
+//! the sequence, the layout and size a SAM + CLIP encoder produces. Poses: the dataset's. Each map
+//! runs with its defaults and a budget of 1M points (voxels, cells).
+#![allow(
+    clippy::unwrap_used,
+    clippy::expect_used,
+    clippy::panic,
+    reason = "bench binary"
+)]
+
+use std::path::Path;
+use std::time::Instant;
+
+use rand::rngs::StdRng;
+use rand::{Rng, SeedableRng};
+use vlem_core::config::DatasetConfig;
+use vlem_core::{BuildContext, Observation, PixelEmbeddings, Registry, StageConfig};
+
+const DIM: usize = 512;
+
+fn main() {
+    // Keep the map implementations linked (their registrations live in this crate).
+    let _ = (
+        vlem_maps::point_cloud::NAME,
+        vlem_maps::voxel::NAME,
+        vlem_maps::segment::NAME,
+    );
+    let root = Path::new(env!("CARGO_MANIFEST_DIR"));
+    let shared = root.join("../../shared/data/icl-livingroom1");
+    let data = if shared.is_dir() {
+        shared
+    } else {
+        root.join("../data/living-room")
+    };
+    let mut source = vlem_datasets::open(&DatasetConfig::default(), &data).unwrap();
+    let frames = std::env::var("VLEM_BENCH_FRAMES")
+        .ok()
+        .and_then(|n| n.parse().ok())
+        .unwrap_or(source.len())
+        .min(source.len());
+    let frames: Vec<_> = (0..frames).map(|i| source.frame(i).unwrap()).collect();
+    let (w, h) = (frames[0].colour.width(), frames[0].colour.height());
+    let embeddings = block_embeddings(w, h);
+    let mut text = vec![0.0f32; DIM];
+    text[0] = 1.0;
+    println!(
+        "{} frames of {}, {DIM}-d embeddings, {} threads",
+        frames.len(),
+        data.display(),
+        rayon::current_num_threads()
+    );
+    println!(
+        "| map | precision | integrate ms/frame (mean) | query ms | points | bytes | bytes/point |"
+    );
+    println!("|---|---|---:|---:|---:|---:|---:|");
+    for kind in ["point-cloud", "voxel", "segment"] {
+        for precision in ["f32", "f16"] {
+            let mut params = toml::Table::new();
+            params.insert("precision".into(), precision.into());
+            let budget_key = if kind == "voxel" {
+                "max_voxels"
+            } else {
+                "max_points"
+            };
+            params.insert(budget_key.into(), toml::Value::Integer(1_000_000));
+            let ctx = BuildContext {
+                embedding_dim: Some(DIM),
+                ..BuildContext::default()
+            };
+            let stage = StageConfig {
+                kind: kind.into(),
+                params,
+            };
+            let mut map = Registry::global().unwrap().build_map(&stage, &ctx).unwrap();
+            let start = Instant::now();
+            for frame in &frames {
+                map.integrate(&Observation {
+                    frame,
+                    pose: frame.pose.as_ref().unwrap(),
+                    embeddings: Some(&embeddings),
+                })
+                .unwrap();
+            }
+            let per_frame = start.elapsed().as_secs_f64() * 1e3 / frames.len() as f64;
+            let mut scores = Vec::new();
+            let t = Instant::now();
+            map.similarity(&text, &mut scores).unwrap();
+            let query = t.elapsed().as_secs_f64() * 1e3;
+            let (n, bytes) = (map.len(), map.memory_bytes());
+            println!(
+                "| {kind} | {precision} | {per_frame:.0} | {query:.1} | {n} | {bytes} | {:.0} |",
+                bytes as f64 / n.max(1) as f64
+            );
+        }
+    }
+}
+
+/// 32x32-pixel blocks, each with a fixed random unit embedding.
+fn block_embeddings(w: u32, h: u32) -> PixelEmbeddings {
+    let mut rng = StdRng::seed_from_u64(11);
+    let blocks_x = w.div_ceil(32);
+    let segments = (blocks_x * h.div_ceil(32)) as usize;
+    let index = (0..w * h)
+        .map(|i| (i % w) / 32 + (i / w) / 32 * blocks_x)
+        .collect();
+    let table = (0..segments * DIM)
+        .map(|_| rng.random_range(-1.0f32..1.0))
+        .collect();
+    PixelEmbeddings::from_segments(w, h, DIM, index, table).unwrap()
+}
