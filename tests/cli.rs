@@ -404,3 +404,46 @@ fn query_clusters_and_grasps() {
         );
     }
 }
+
+#[test]
+fn every_map_kind_runs_saves_and_answers_queries_at_f16() {
+    for kind in ["point-cloud", "voxel", "segment"] {
+        let tmp = tempfile::tempdir().unwrap();
+        let config = write_config(
+            tmp.path(),
+            &format!(
+                "[dataset]\npath = \"{}\"\nmax_frames = 2\n[encoder]\nkind = \"colour-names\"\n\
+                 [map]\nkind = \"{kind}\"\nprecision = \"f16\"\n",
+                data()
+            ),
+        );
+        let out_dir = tmp.path().join(kind);
+        ok(&[
+            "run",
+            "--config",
+            &config,
+            "--out",
+            out_dir.to_str().unwrap(),
+        ]);
+        let stats: serde_json::Value =
+            serde_json::from_str(&std::fs::read_to_string(out_dir.join("stats.json")).unwrap())
+                .unwrap();
+        assert_eq!(stats["map"]["kind"], kind);
+        let points = stats["map"]["points"].as_u64().unwrap();
+        assert!(points > 100, "{kind}: {points} points");
+        let map = out_dir.join("map.vlem");
+        let answer = ok(&["query", "--map", map.to_str().unwrap(), "white"]);
+        let best: f32 = answer
+            .split("best ")
+            .nth(1)
+            .and_then(|s| s.split_whitespace().next())
+            .unwrap()
+            .parse()
+            .unwrap();
+        assert!(best > 0.9, "{kind}: best score for white {best}");
+        assert!(
+            answer.contains(&format!("{points} points")),
+            "{kind}: {answer}"
+        );
+    }
+}
