@@ -4,6 +4,7 @@
 //! Everything registers itself with the vlem registry; binaries reference this crate so that the
 //! registrations are linked.
 
+mod common;
 pub mod error;
 pub mod grasp;
 #[cfg(feature = "point-cloud")]

@@ -33,7 +33,6 @@
 
 use std::collections::{BTreeMap, HashMap};
 
-use nalgebra::{Matrix3, Vector3};
 use serde::Deserialize;
 use vlem_core::embeddings::{EmbeddingLayout, normalise};
 use vlem_core::{
@@ -41,6 +40,7 @@ use vlem_core::{
     PixelEmbeddings, StageKind, parse_params,
 };
 
+use crate::common::{Rigid, check_observation, invalid_parameter, resolve_dim};
 use crate::error::MapError;
 use crate::storage::{EmbeddingStore, Precision, fuse_into};
 
@@ -122,16 +122,7 @@ impl SegmentConfig {
     /// [`MapError::InvalidParameter`] (wrapped as a stage error) for out-of-range values and for a
     /// `dim` that disagrees with the encoder.
     pub fn build(&self, encoder_dim: Option<usize>) -> Result<SegmentMap, CoreError> {
-        let invalid = |name: &'static str, reason: &str| {
-            CoreError::stage(
-                StageKind::Map,
-                NAME,
-                MapError::InvalidParameter {
-                    name,
-                    reason: reason.to_owned(),
-                },
-            )
-        };
+        let invalid = |name: &'static str, reason: &str| invalid_parameter(NAME, name, reason);
         if self.max_points == 0 {
             return Err(invalid("max_points", "must be at least 1"));
         }
@@ -153,19 +144,7 @@ impl SegmentConfig {
         if !(self.max_depth.is_finite() && self.max_depth > 0.0) {
             return Err(invalid("max_depth", "must be a positive number of metres"));
         }
-        let dim = match (self.dim, encoder_dim) {
-            (Some(map_dim), Some(encoder_dim)) if map_dim != encoder_dim => {
-                return Err(invalid(
-                    "dim",
-                    &format!(
-                        "is {map_dim} but the encoder produces {encoder_dim}-d embeddings: \
-                         remove `dim` or set it to {encoder_dim}"
-                    ),
-                ));
-            }
-            (Some(d), _) => d,
-            (None, d) => d.unwrap_or(0),
-        };
+        let dim = resolve_dim(NAME, self.dim, encoder_dim)?;
         Ok(SegmentMap::new(self.clone(), dim))
     }
 }
@@ -235,28 +214,6 @@ struct Accumulator {
     embedding: Vec<f32>,
 }
 
-/// An f32 rigid transform for the per-pixel loop (poses are f64 elsewhere).
-#[derive(Clone, Copy)]
-struct Rigid {
-    r: Matrix3<f32>,
-    t: Vector3<f32>,
-}
-
-impl Rigid {
-    fn from_pose(pose: &vlem_core::Pose) -> Self {
-        let m = pose.to_homogeneous().cast::<f32>();
-        Self {
-            r: m.fixed_view::<3, 3>(0, 0).into_owned(),
-            t: m.fixed_view::<3, 1>(0, 3).into_owned(),
-        }
-    }
-
-    fn apply(&self, p: [f32; 3]) -> [f32; 3] {
-        let q = self.r * Vector3::from(p) + self.t;
-        [q.x, q.y, q.z]
-    }
-}
-
 /// The segment map.
 #[derive(Clone, Debug)]
 pub struct SegmentMap {
@@ -314,26 +271,7 @@ impl SegmentMap {
     }
 
     fn check(&self, obs: &Observation<'_>) -> Result<(), MapError> {
-        let frame = obs.frame;
-        match (self.dim, obs.embeddings) {
-            (0, None) => Ok(()),
-            (0, Some(e)) => Err(MapError::UnexpectedEmbeddings { dim: e.dim() }),
-            (d, None) => Err(MapError::MissingEmbeddings { dim: d }),
-            (d, Some(e)) if e.dim() != d => Err(MapError::Dimension {
-                expected: d,
-                actual: e.dim(),
-            }),
-            (_, Some(e))
-                if (e.width(), e.height()) != (frame.depth.width(), frame.depth.height()) =>
-            {
-                Err(MapError::EmbeddingSize {
-                    frame: frame.index,
-                    embeddings: (e.width(), e.height()),
-                    depth: (frame.depth.width(), frame.depth.height()),
-                })
-            }
-            _ => Ok(()),
-        }
+        check_observation(self.dim, obs)
     }
 
     /// Back-projects, quantises and groups the valid pixels into 2D segments.

@@ -25,7 +25,6 @@
 use std::collections::HashMap;
 use std::hash::{BuildHasherDefault, Hash, Hasher};
 
-use nalgebra::{Matrix3, Vector3};
 use rayon::prelude::*;
 use serde::Deserialize;
 use vlem_core::embeddings::normalise;
@@ -34,6 +33,7 @@ use vlem_core::{
     PixelEmbeddings, RgbImage, StageKind, parse_params,
 };
 
+use crate::common::{Rigid, check_observation, invalid_parameter, resolve_dim};
 use crate::error::MapError;
 use crate::storage::{EmbeddingStore, Precision};
 
@@ -111,16 +111,7 @@ impl VoxelConfig {
     /// [`MapError::InvalidParameter`] (wrapped as a stage error) for out-of-range values and for a
     /// `dim` that disagrees with the encoder.
     pub fn build(&self, encoder_dim: Option<usize>) -> Result<VoxelMap, CoreError> {
-        let invalid = |name: &'static str, reason: &str| {
-            CoreError::stage(
-                StageKind::Map,
-                NAME,
-                MapError::InvalidParameter {
-                    name,
-                    reason: reason.to_owned(),
-                },
-            )
-        };
+        let invalid = |name: &'static str, reason: &str| invalid_parameter(NAME, name, reason);
         if !(self.voxel_size.is_finite() && self.voxel_size >= MIN_VOXEL_SIZE) {
             return Err(invalid(
                 "voxel_size",
@@ -145,19 +136,7 @@ impl VoxelConfig {
                 "must be at least 1 (or left out for no cap)",
             ));
         }
-        let dim = match (self.dim, encoder_dim) {
-            (Some(map_dim), Some(encoder_dim)) if map_dim != encoder_dim => {
-                return Err(invalid(
-                    "dim",
-                    &format!(
-                        "is {map_dim} but the encoder produces {encoder_dim}-d embeddings: \
-                         remove `dim` or set it to {encoder_dim}"
-                    ),
-                ));
-            }
-            (Some(d), _) => d,
-            (None, d) => d.unwrap_or(0),
-        };
+        let dim = resolve_dim(NAME, self.dim, encoder_dim)?;
         Ok(VoxelMap::new(self.clone(), dim))
     }
 }
@@ -248,29 +227,6 @@ pub struct VoxelMap {
     last_seen: Vec<u32>,
     embeddings: EmbeddingStore,
     frames: usize,
-}
-
-/// An f32 rigid transform for the hot loop (poses are f64 elsewhere).
-#[derive(Clone, Copy)]
-struct Rigid {
-    r: Matrix3<f32>,
-    t: Vector3<f32>,
-}
-
-impl Rigid {
-    fn from_pose(pose: &vlem_core::Pose) -> Self {
-        let m = pose.to_homogeneous().cast::<f32>();
-        Self {
-            r: m.fixed_view::<3, 3>(0, 0).into_owned(),
-            t: m.fixed_view::<3, 1>(0, 3).into_owned(),
-        }
-    }
-
-    #[inline]
-    fn apply(&self, p: [f32; 3]) -> [f32; 3] {
-        let q = self.r * Vector3::from(p) + self.t;
-        [q.x, q.y, q.z]
-    }
 }
 
 /// What one voxel of a frame does to the map.
@@ -412,26 +368,7 @@ impl VoxelMap {
     }
 
     fn check(&self, obs: &Observation<'_>) -> Result<(), MapError> {
-        let frame = obs.frame;
-        match (self.dim, obs.embeddings) {
-            (0, None) => Ok(()),
-            (0, Some(e)) => Err(MapError::UnexpectedEmbeddings { dim: e.dim() }),
-            (d, None) => Err(MapError::MissingEmbeddings { dim: d }),
-            (d, Some(e)) if e.dim() != d => Err(MapError::Dimension {
-                expected: d,
-                actual: e.dim(),
-            }),
-            (_, Some(e))
-                if (e.width(), e.height()) != (frame.depth.width(), frame.depth.height()) =>
-            {
-                Err(MapError::EmbeddingSize {
-                    frame: frame.index,
-                    embeddings: (e.width(), e.height()),
-                    depth: (frame.depth.width(), frame.depth.height()),
-                })
-            }
-            _ => Ok(()),
-        }
+        check_observation(self.dim, obs)
     }
 
     /// The voxel and linear pixel index of every usable pixel, sorted by voxel then pixel (so the

@@ -1,0 +1,85 @@
+//! Pieces every map shares: validating an observation, resolving the embedding dimension,
+//! parameter errors, and the f32 rigid transform of the per-pixel loops.
+
+use nalgebra::{Matrix3, Vector3};
+use vlem_core::{CoreError, Observation, StageKind};
+
+use crate::error::MapError;
+
+/// An f32 rigid transform for the hot loops (poses are f64 elsewhere).
+#[derive(Clone, Copy, Debug)]
+pub(crate) struct Rigid {
+    r: Matrix3<f32>,
+    t: Vector3<f32>,
+}
+
+impl Rigid {
+    pub(crate) fn from_pose(pose: &vlem_core::Pose) -> Self {
+        let m = pose.to_homogeneous().cast::<f32>();
+        Self {
+            r: m.fixed_view::<3, 3>(0, 0).into_owned(),
+            t: m.fixed_view::<3, 1>(0, 3).into_owned(),
+        }
+    }
+
+    #[inline]
+    pub(crate) fn apply(&self, p: [f32; 3]) -> [f32; 3] {
+        let q = self.r * Vector3::from(p) + self.t;
+        [q.x, q.y, q.z]
+    }
+}
+
+/// The error for a map parameter out of its range, named for the pipeline.
+pub(crate) fn invalid_parameter(map: &str, name: &'static str, reason: &str) -> CoreError {
+    CoreError::stage(
+        StageKind::Map,
+        map,
+        MapError::InvalidParameter {
+            name,
+            reason: reason.to_owned(),
+        },
+    )
+}
+
+/// The map's embedding dimension: the configured `dim` if any (it must equal the encoder's), else
+/// the encoder's, else 0 (geometry only).
+pub(crate) fn resolve_dim(
+    map: &str,
+    configured: Option<usize>,
+    encoder: Option<usize>,
+) -> Result<usize, CoreError> {
+    match (configured, encoder) {
+        (Some(map_dim), Some(encoder_dim)) if map_dim != encoder_dim => Err(invalid_parameter(
+            map,
+            "dim",
+            &format!(
+                "is {map_dim} but the encoder produces {encoder_dim}-d embeddings: \
+                 remove `dim` or set it to {encoder_dim}"
+            ),
+        )),
+        (Some(d), _) => Ok(d),
+        (None, d) => Ok(d.unwrap_or(0)),
+    }
+}
+
+/// Checks that an observation's embeddings fit a map of dimension `dim`.
+pub(crate) fn check_observation(dim: usize, obs: &Observation<'_>) -> Result<(), MapError> {
+    let frame = obs.frame;
+    match (dim, obs.embeddings) {
+        (0, None) => Ok(()),
+        (0, Some(e)) => Err(MapError::UnexpectedEmbeddings { dim: e.dim() }),
+        (d, None) => Err(MapError::MissingEmbeddings { dim: d }),
+        (d, Some(e)) if e.dim() != d => Err(MapError::Dimension {
+            expected: d,
+            actual: e.dim(),
+        }),
+        (_, Some(e)) if (e.width(), e.height()) != (frame.depth.width(), frame.depth.height()) => {
+            Err(MapError::EmbeddingSize {
+                frame: frame.index,
+                embeddings: (e.width(), e.height()),
+                depth: (frame.depth.width(), frame.depth.height()),
+            })
+        }
+        _ => Ok(()),
+    }
+}
