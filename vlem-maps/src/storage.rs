@@ -5,6 +5,9 @@
 //! happens in `f32`: rows are widened into a scratch buffer, updated and narrowed back.
 
 use half::f16;
+// Slice conversions use the CPU's F16C instructions where present (detected at run time);
+// element-wise `to_f32` would be a software conversion several times slower.
+use half::slice::HalfFloatSliceExt;
 use rayon::prelude::*;
 use serde::Deserialize;
 use vlem_core::embeddings::normalise;
@@ -52,7 +55,11 @@ impl EmbeddingStore {
     pub fn from_f32(dim: usize, precision: Precision, values: Vec<f32>) -> Self {
         let values = match precision {
             Precision::F32 => Values::F32(values),
-            Precision::F16 => Values::F16(values.iter().map(|&x| f16::from_f32(x)).collect()),
+            Precision::F16 => {
+                let mut narrow = vec![f16::ZERO; values.len()];
+                narrow.convert_from_f32_slice(&values);
+                Values::F16(narrow)
+            }
         };
         Self { dim, values }
     }
@@ -112,11 +119,7 @@ impl EmbeddingStore {
         let d = self.dim;
         match &self.values {
             Values::F32(v) => out.copy_from_slice(&v[i * d..(i + 1) * d]),
-            Values::F16(v) => {
-                for (o, x) in out.iter_mut().zip(&v[i * d..(i + 1) * d]) {
-                    *o = x.to_f32();
-                }
-            }
+            Values::F16(v) => v[i * d..(i + 1) * d].convert_to_f32_slice(out),
         }
     }
 
@@ -125,11 +128,7 @@ impl EmbeddingStore {
         let d = self.dim;
         match &mut self.values {
             Values::F32(v) => v[i * d..(i + 1) * d].copy_from_slice(row),
-            Values::F16(v) => {
-                for (o, x) in v[i * d..(i + 1) * d].iter_mut().zip(row) {
-                    *o = f16::from_f32(*x);
-                }
-            }
+            Values::F16(v) => v[i * d..(i + 1) * d].convert_from_f32_slice(row),
         }
     }
 
@@ -168,13 +167,9 @@ impl EmbeddingStore {
                 .for_each_init(
                     || (init(), vec![0.0f32; d]),
                     |(state, scratch), (i, row)| {
-                        for (s, x) in scratch.iter_mut().zip(row.iter()) {
-                            *s = x.to_f32();
-                        }
+                        row.convert_to_f32_slice(scratch);
                         if update(state, first + i, scratch) {
-                            for (x, s) in row.iter_mut().zip(scratch.iter()) {
-                                *x = f16::from_f32(*s);
-                            }
+                            row.convert_from_f32_slice(scratch);
                         }
                     },
                 ),
@@ -210,7 +205,7 @@ impl EmbeddingStore {
     pub fn to_f32(&self) -> Vec<f32> {
         match &self.values {
             Values::F32(v) => v.clone(),
-            Values::F16(v) => v.iter().map(|x| x.to_f32()).collect(),
+            Values::F16(v) => v.to_f32_vec(),
         }
     }
 
@@ -236,10 +231,9 @@ impl EmbeddingStore {
                     let mut wide = [0.0f32; 64];
                     let mut acc = 0.0;
                     for (chunk, t) in row.chunks(64).zip(text.chunks(64)) {
-                        for (w, x) in wide.iter_mut().zip(chunk) {
-                            *w = x.to_f32();
-                        }
-                        acc += dot(&wide[..chunk.len()], t);
+                        let wide = &mut wide[..chunk.len()];
+                        chunk.convert_to_f32_slice(wide);
+                        acc += dot(wide, t);
                     }
                     *s = (acc + 1.0) * 0.5;
                 };
