@@ -2,7 +2,7 @@
 //! parameter errors, and the f32 rigid transform of the per-pixel loops.
 
 use nalgebra::{Matrix3, Vector3};
-use vlem_core::{CoreError, Observation, StageKind};
+use vlem_core::{CoreError, MapSnapshot, Observation, StageKind};
 
 use crate::error::MapError;
 
@@ -82,4 +82,17 @@ pub(crate) fn check_observation(dim: usize, obs: &Observation<'_>) -> Result<(),
         }
         _ => Ok(()),
     }
+}
+
+/// Checks that a snapshot is consistent and has the map's embedding dimension (before `restore`).
+pub(crate) fn check_snapshot(dim: usize, snapshot: &MapSnapshot) -> Result<(), CoreError> {
+    snapshot.validate()?;
+    if snapshot.dim != dim {
+        return Err(CoreError::DimensionMismatch {
+            what: format!("snapshot of map `{}`", snapshot.map_kind),
+            expected: dim,
+            actual: snapshot.dim,
+        });
+    }
+    Ok(())
 }

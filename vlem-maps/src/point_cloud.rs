@@ -23,7 +23,7 @@ use vlem_core::{
     PixelEmbeddings, StageKind, parse_params,
 };
 
-use crate::common::{Rigid, check_observation, invalid_parameter, resolve_dim};
+use crate::common::{Rigid, check_observation, check_snapshot, invalid_parameter, resolve_dim};
 use crate::error::MapError;
 use crate::storage::{EmbeddingStore, Precision, fuse_into};
 
@@ -575,14 +575,7 @@ impl EmbeddingMap for PointCloudMap {
     }
 
     fn restore(&mut self, snapshot: MapSnapshot) -> vlem_core::Result<()> {
-        snapshot.validate()?;
-        if snapshot.dim != self.dim {
-            return Err(CoreError::DimensionMismatch {
-                what: format!("snapshot of map `{}`", snapshot.map_kind),
-                expected: self.dim,
-                actual: snapshot.dim,
-            });
-        }
+        check_snapshot(self.dim, &snapshot)?;
         self.frames = snapshot.metadata.frames_integrated;
         self.positions = snapshot.positions;
         self.colours = snapshot.colours;

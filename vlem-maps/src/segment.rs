@@ -40,7 +40,7 @@ use vlem_core::{
     PixelEmbeddings, StageKind, parse_params,
 };
 
-use crate::common::{Rigid, check_observation, invalid_parameter, resolve_dim};
+use crate::common::{Rigid, check_observation, check_snapshot, invalid_parameter, resolve_dim};
 use crate::error::MapError;
 use crate::storage::{EmbeddingStore, Precision, fuse_into};
 
@@ -816,14 +816,7 @@ impl EmbeddingMap for SegmentMap {
     /// increasing cell keys form one segment (a map's own snapshot lists each segment's cells in
     /// key order). A point in a cell already taken is dropped (only foreign snapshots have such).
     fn restore(&mut self, snapshot: MapSnapshot) -> vlem_core::Result<()> {
-        snapshot.validate()?;
-        if snapshot.dim != self.dim {
-            return Err(CoreError::DimensionMismatch {
-                what: format!("snapshot of map `{}`", snapshot.map_kind),
-                expected: self.dim,
-                actual: snapshot.dim,
-            });
-        }
+        check_snapshot(self.dim, &snapshot)?;
         *self = Self::new(self.config.clone(), self.dim);
         self.frames = snapshot.metadata.frames_integrated;
         // Restored segments count as seen in the last frame: over budget, the grid coarsens.

@@ -33,7 +33,7 @@ use vlem_core::{
     PixelEmbeddings, RgbImage, StageKind, parse_params,
 };
 
-use crate::common::{Rigid, check_observation, invalid_parameter, resolve_dim};
+use crate::common::{Rigid, check_observation, check_snapshot, invalid_parameter, resolve_dim};
 use crate::error::MapError;
 use crate::storage::{EmbeddingStore, Precision};
 
@@ -681,14 +681,7 @@ impl EmbeddingMap for VoxelMap {
     /// at the saved frame count. Positions that share a voxel (a snapshot of another map) are
     /// merged as a running mean. A snapshot of this map with the same voxel size restores exactly.
     fn restore(&mut self, snapshot: MapSnapshot) -> vlem_core::Result<()> {
-        snapshot.validate()?;
-        if snapshot.dim != self.dim {
-            return Err(CoreError::DimensionMismatch {
-                what: format!("snapshot of map `{}`", snapshot.map_kind),
-                expected: self.dim,
-                actual: snapshot.dim,
-            });
-        }
+        check_snapshot(self.dim, &snapshot)?;
         let mut map = Self::new(self.config.clone(), self.dim);
         map.frames = snapshot.metadata.frames_integrated;
         let stamp = u32::try_from(map.frames).unwrap_or(u32::MAX);
