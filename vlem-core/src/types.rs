@@ -379,6 +379,18 @@ impl Region {
     }
 }
 
+/// A triangle mesh with one colour per vertex: the dense colour model a tracker can export
+/// (e.g. marching cubes on its TSDF), shown beside the embedding map.
+#[derive(Clone, Debug, Default, PartialEq)]
+pub struct ColouredMesh {
+    /// Vertex positions in world coordinates (metres).
+    pub vertices: Vec<[f32; 3]>,
+    /// One RGB colour per vertex.
+    pub colours: Vec<[u8; 3]>,
+    /// Vertex indices of each triangle; empty for a point set.
+    pub triangles: Vec<[u32; 3]>,
+}
+
 #[cfg(test)]
 mod tests {
     use super::*;

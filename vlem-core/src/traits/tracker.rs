@@ -4,8 +4,8 @@
 //! comparison studies want them. A tracker owns whatever state pose estimation needs (previous
 //! frame, a TSDF model, ...) and answers one pose per frame, in order. It never sees embeddings.
 
-use crate::error::Result;
-use crate::types::{Frame, Pose};
+use crate::error::{CoreError, Result};
+use crate::types::{ColouredMesh, Frame, Pose};
 
 /// How tracking went for one frame.
 #[derive(Clone, Debug, PartialEq)]
@@ -44,4 +44,16 @@ pub trait Tracker: Send + Sync {
     /// An error stops the run; a frame that merely cannot be tracked is reported as
     /// [`TrackingState::Lost`] instead.
     fn track(&mut self, frame: &Frame) -> Result<TrackedPose>;
+
+    /// The dense colour model the tracker built (e.g. a mesh of its TSDF), for export beside
+    /// the embedding map.
+    ///
+    /// # Errors
+    /// [`CoreError::Unsupported`] for trackers that keep no model (the default).
+    fn colour_model(&self) -> Result<ColouredMesh> {
+        Err(CoreError::Unsupported {
+            implementation: self.name().to_owned(),
+            capability: "colour model export",
+        })
+    }
 }

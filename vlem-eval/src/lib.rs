@@ -1,0 +1,4 @@
+//! vlem-eval: how good a run was.
+//!
+//! - [`trajectory`]: absolute trajectory error (after a least-squares rigid alignment) and
+//!   relative pose error of an estimated camera trajectory against a reference.
