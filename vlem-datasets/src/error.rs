@@ -193,6 +193,29 @@ pub enum DatasetError {
         /// The number of frames.
         len: usize,
     },
+    /// A `[dataset.synthetic]` value (or a `[dataset]` setting) the synthetic scene cannot use.
+    #[error("[dataset.synthetic] {key}: {message}")]
+    SyntheticConfig {
+        /// The key, as written in the config.
+        key: &'static str,
+        /// What is wrong with its value.
+        message: String,
+    },
+    /// A request the synthetic scene cannot answer (a frame past the end, a bad argument).
+    #[error("synthetic scene: {message}")]
+    Synthetic {
+        /// What was asked and why it cannot be answered.
+        message: String,
+    },
+    /// An image that cannot be encoded or written.
+    #[error("{}: cannot write image: {source}", path.display())]
+    UnwritableImage {
+        /// The image file.
+        path: PathBuf,
+        /// The encoder's error.
+        #[source]
+        source: image::ImageError,
+    },
     /// A core validation (intrinsics, frame) that failed on data read from a file.
     #[error("{}: {source}", path.display())]
     Core {

@@ -4,7 +4,10 @@
 //! - [`icl`]: ICL-NUIM (augmented) / Redwood / Open3D folders, depth scale 1000;
 //! - [`tum`]: TUM RGB-D, colour associated to depth within 0.02 s, depth scale 5000;
 //! - [`scannet`]: ScanNet exports, colour resampled to the depth camera, depth scale 1000;
-//! - [`replica`]: Replica as packaged by NICE-SLAM, depth scale 6553.5.
+//! - [`replica`]: Replica as packaged by NICE-SLAM, depth scale 6553.5;
+//! - [`synthetic`]: no folder: a procedural labelled scene rendered on demand
+//!   (`kind = "synthetic"`, settings in `[dataset.synthetic]`), which can also be written out in the
+//!   ICL layout with [`synthetic::write_to_disk`].
 //!
 //! [`open`] builds the reader for a `[dataset]` config, detecting the layout with [`detect_kind`]
 //! when `kind = "auto"`. Readers list the files when opened and decode a frame only when it is
@@ -27,6 +30,7 @@ mod images;
 pub mod replica;
 pub mod scannet;
 mod sequence;
+pub mod synthetic;
 mod text;
 pub mod trajectory;
 pub mod tum;
@@ -36,6 +40,7 @@ pub use error::{DatasetError, Result};
 pub use icl::IclReader;
 pub use replica::ReplicaReader;
 pub use scannet::ScanNetReader;
+pub use synthetic::{SyntheticReader, SyntheticScene};
 pub use tum::TumReader;
 
 /// What [`detect_kind`] looks for, in the order it checks.
@@ -106,11 +111,25 @@ fn unknown_layout(dir: &Path) -> DatasetError {
 
 /// Opens the dataset folder `dir` with the reader that `config.kind` names, or the one
 /// [`detect_kind`] picks for `auto`. `config.path` is not used: the caller resolves it to `dir`.
+/// `kind = "synthetic"` needs no folder: `dir` is ignored and the scene of `[dataset.synthetic]` is
+/// generated ([`SyntheticReader::open`]).
 ///
 /// # Errors
 /// The errors of [`detect_kind`] and of the reader's `open` (e.g. [`IclReader::open`]); an empty
-/// dataset is [`DatasetError::Empty`].
+/// dataset is [`DatasetError::Empty`]; [`DatasetError::BadConfig`] when `[dataset.synthetic]` is set
+/// but `kind` is not `synthetic`.
 pub fn open(config: &DatasetConfig, dir: &Path) -> Result<Box<dyn FrameSource>> {
+    if config.kind == DatasetKind::Synthetic {
+        return Ok(Box::new(SyntheticReader::open(config)?));
+    }
+    if config.synthetic.is_some() {
+        return Err(DatasetError::BadConfig {
+            path: dir.to_path_buf(),
+            message: "synthetic is set but kind is not \"synthetic\"; set kind = \"synthetic\" \
+                      or remove [dataset.synthetic]"
+                .to_owned(),
+        });
+    }
     let kind = match config.kind {
         DatasetKind::Auto => detect_kind(dir)?,
         kind => kind,
@@ -119,6 +138,7 @@ pub fn open(config: &DatasetConfig, dir: &Path) -> Result<Box<dyn FrameSource>> 
         DatasetKind::Tum => Box::new(TumReader::open(dir, config)?),
         DatasetKind::Scannet => Box::new(ScanNetReader::open(dir, config)?),
         DatasetKind::Replica => Box::new(ReplicaReader::open(dir, config)?),
+        DatasetKind::Synthetic => Box::new(SyntheticReader::open(config)?),
         // `detect_kind` never returns `Auto`, so this arm is ICL only.
         DatasetKind::Icl | DatasetKind::Auto => Box::new(IclReader::open(dir, config)?),
     })
