@@ -1,5 +1,6 @@
 //! `vlem`: run the mapping pipeline on an RGB-D dataset, query saved maps, list plugins, run the demo.
 
+mod eval;
 mod output;
 mod plugins;
 
@@ -48,6 +49,10 @@ enum Command {
         /// Process at most this many frames.
         #[arg(long)]
         max_frames: Option<usize>,
+        /// Do not write OUT/colour-model.ply, the dense colour model (TSDF mesh) that trackers
+        /// with a model (`frame-to-model`) export after the run.
+        #[arg(long)]
+        no_colour_model: bool,
     },
     /// Query a saved map with text.
     Query {
@@ -77,6 +82,12 @@ enum Command {
         /// Query texts.
         #[arg(required = true)]
         text: Vec<String>,
+    },
+    /// Evaluate results against a reference (trajectory accuracy: ATE and RPE).
+    Eval {
+        /// What to evaluate.
+        #[command(subcommand)]
+        command: eval::EvalCommand,
     },
     /// List every registered implementation per stage.
     Plugins,
@@ -122,6 +133,7 @@ fn execute(command: Command) -> Result<()> {
             dataset,
             out,
             max_frames,
+            no_colour_model,
         } => {
             let text = std::fs::read_to_string(&config)
                 .with_context(|| format!("cannot read config {}", config.display()))?;
@@ -131,7 +143,12 @@ fn execute(command: Command) -> Result<()> {
                 .unwrap_or(Path::new("."));
             let parsed = Config::from_toml(&text)
                 .map_err(|message| anyhow::anyhow!("config {}: {message}", config.display()))?;
-            run(parsed, dir, dataset, &out, max_frames)
+            let options = RunOptions {
+                dataset,
+                max_frames,
+                colour_model: !no_colour_model,
+            };
+            run(parsed, dir, &out, &options)
         }
         Command::Query {
             map,
@@ -152,22 +169,42 @@ fn execute(command: Command) -> Result<()> {
             },
             &text,
         ),
+        Command::Eval { command } => eval::execute(command),
         Command::Plugins => list_plugins(),
         Command::Demo { out } => {
             let config = Config::from_toml(DEMO_CONFIG)
                 .map_err(|message| anyhow::anyhow!("embedded demo config: {message}"))?;
-            run(config, Path::new(DEMO_CONFIG_DIR), None, &out, None)
+            run(
+                config,
+                Path::new(DEMO_CONFIG_DIR),
+                &out,
+                &RunOptions {
+                    dataset: None,
+                    max_frames: None,
+                    colour_model: true,
+                },
+            )
         }
     }
 }
 
-fn run(
-    mut config: Config,
-    config_dir: &Path,
+/// Command-line choices of `vlem run` beyond the config.
+struct RunOptions {
+    /// Dataset folder overriding `[dataset] path`.
     dataset: Option<PathBuf>,
-    out: &Path,
+    /// Frame limit overriding `[dataset] max_frames`.
     max_frames: Option<usize>,
-) -> Result<()> {
+    /// Export the tracker's dense colour model where it has one.
+    colour_model: bool,
+}
+
+fn run(mut config: Config, config_dir: &Path, out: &Path, options: &RunOptions) -> Result<()> {
+    let RunOptions {
+        dataset,
+        max_frames,
+        ..
+    } = options;
+    let (dataset, max_frames) = (dataset.clone(), *max_frames);
     let config_dir = config_dir
         .canonicalize()
         .with_context(|| format!("config folder {}", config_dir.display()))?;
@@ -175,12 +212,15 @@ fn run(
         config_dir: config_dir.clone(),
         embedding_dim: None,
     };
+    let synthetic = config.dataset.kind == vlem_core::config::DatasetKind::Synthetic;
     let dataset_dir = match (dataset, &config.dataset.path) {
         (Some(dir), _) => dir,
         (None, Some(path)) => ctx.resolve(path),
+        // A synthetic scene is generated from [dataset.synthetic]; it has no folder.
+        (None, None) if synthetic => config_dir.clone(),
         (None, None) => bail!("no dataset: pass --dataset DIR or set [dataset] path in the config"),
     };
-    if !dataset_dir.is_dir() {
+    if !synthetic && !dataset_dir.is_dir() {
         bail!(
             "dataset folder {} does not exist (pass --dataset DIR to use another one)",
             dataset_dir.display()
@@ -242,6 +282,17 @@ fn run(
         .map(|e| (e.timestamp, e.pose))
         .collect();
     vlem_datasets::trajectory::write_tum(&out.join("trajectory.tum"), &trajectory)?;
+    // The dataset's own poses beside the estimate, so `vlem eval trajectory` needs nothing else.
+    let reference: Option<Vec<(f64, vlem_core::Pose)>> = report
+        .trajectory
+        .iter()
+        .map(|e| e.reference.map(|pose| (e.timestamp, pose)))
+        .collect();
+    if let Some(reference) = reference.filter(|r| !r.is_empty())
+        && pipeline.tracker().name() != "ground-truth"
+    {
+        vlem_datasets::trajectory::write_tum(&out.join("reference.tum"), &reference)?;
+    }
     let mut snapshot = None;
     if let Some(map) = pipeline.map() {
         let mut snap = map.snapshot();
@@ -257,6 +308,9 @@ fn run(
     let stats = stats_json(&config, &report, pipeline.map());
     output::write_atomically(&out.join("stats.json"), stats.to_string().as_bytes())?;
     print_summary(&report, pipeline.map(), out);
+    if options.colour_model {
+        export_colour_model(pipeline.tracker(), out)?;
+    }
 
     if let (Some(snap), Some(encoder)) = (&snapshot, pipeline.encoder())
         && !config.query.texts.is_empty()
@@ -270,6 +324,25 @@ fn run(
         )?;
     }
     Ok(())
+}
+
+/// Writes OUT/colour-model.ply when the tracker keeps a dense colour model.
+fn export_colour_model(tracker: &dyn vlem_core::Tracker, out: &Path) -> Result<()> {
+    match tracker.colour_model() {
+        Ok(mesh) => {
+            let path = out.join("colour-model.ply");
+            output::write_atomically(&path, &output::mesh_ply(&mesh))?;
+            println!(
+                "dense colour model: {} ({} vertices, {} triangles)",
+                path.display(),
+                mesh.vertices.len(),
+                mesh.triangles.len()
+            );
+            Ok(())
+        }
+        Err(vlem_core::CoreError::Unsupported { .. }) => Ok(()),
+        Err(e) => Err(e.into()),
+    }
 }
 
 fn stats_json(
@@ -290,6 +363,14 @@ fn stats_json(
             "skipped": report.frames_skipped,
             "lost": report.frames_lost,
         },
+        "lost_frames": report
+            .trajectory
+            .iter()
+            .filter_map(|e| e.lost.as_ref().map(|reason| serde_json::json!({
+                "index": e.index,
+                "reason": reason,
+            })))
+            .collect::<Vec<_>>(),
         "mode": config.pipeline.mode,
         "mean_ms": mean_ms,
         "wall_seconds": report.wall_seconds,

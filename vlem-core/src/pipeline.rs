@@ -65,8 +65,10 @@ pub struct TrajectoryEntry {
     pub timestamp: f64,
     /// Camera-to-world pose.
     pub pose: Pose,
-    /// Whether tracking was lost at this frame.
-    pub lost: bool,
+    /// Why tracking was lost at this frame; `None` when it tracked.
+    pub lost: Option<String>,
+    /// The dataset's pose of this frame, where it has one (the reference to evaluate against).
+    pub reference: Option<Pose>,
 }
 
 /// Mean wall time of one stage.
@@ -332,12 +334,17 @@ fn track_frames(
         let t = Instant::now();
         let tracked = tracker.track(&frame)?;
         out.track.add(t);
-        let lost = matches!(tracked.state, TrackingState::Lost { .. });
+        let lost_reason = match tracked.state {
+            TrackingState::Lost { reason } => Some(reason),
+            TrackingState::Tracking => None,
+        };
+        let lost = lost_reason.is_some();
         out.trajectory.push(TrajectoryEntry {
             index: frame.index,
             timestamp: frame.timestamp,
             pose: tracked.pose,
-            lost,
+            lost: lost_reason,
+            reference: frame.pose,
         });
         progress(Progress::Tracked { index: frame.index });
         if lost {

@@ -263,7 +263,14 @@ fn lost_frames_are_tracked_but_never_integrated() {
         .unwrap();
     assert_eq!(report.frames_lost, 5);
     assert_eq!(report.frames_processed, 5);
-    assert_eq!(report.trajectory.iter().filter(|t| t.lost).count(), 5);
+    assert_eq!(
+        report
+            .trajectory
+            .iter()
+            .filter(|t| t.lost.is_some())
+            .count(),
+        5
+    );
 }
 
 #[test]

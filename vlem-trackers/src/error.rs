@@ -12,4 +12,20 @@ pub enum TrackerError {
         /// Frame index.
         frame: usize,
     },
+    /// A tracker or TSDF parameter is out of range.
+    #[error("parameter `{name}` {reason}")]
+    InvalidParameter {
+        /// The parameter's config key.
+        name: &'static str,
+        /// What is wrong with it.
+        reason: String,
+    },
+    /// An image, camera or pose handed to the TSDF volume is unusable.
+    #[error("TSDF volume: {what} {reason}")]
+    TsdfInput {
+        /// The input: "depth image", "colour image", "intrinsics", "pose", ...
+        what: &'static str,
+        /// What is wrong with it.
+        reason: String,
+    },
 }

@@ -1,0 +1,622 @@
+//! The image pyramid dense odometry works on: per level, depth, intensity and the target-side
+//! gradients and normals, packed for the random lookups of projective data association.
+//!
+//! Built the way Open3D's `t.pipelines.odometry` builds it, so parameters mean the same: depth
+//! outside `(0, depth_max]` is invalid (NaN); intensity is `0.299 R + 0.587 G + 0.114 B` in
+//! `[0, 1]`; each coarser level is a 5×5 Gaussian (1 4 6 4 1) blur sampled at every second pixel,
+//! where for depth only valid neighbours within `2 · depth_outlier_trunc` of the centre count;
+//! gradients are 3×3 Sobel responses scaled by 1/8; intrinsics halve with each level.
+
+use rayon::prelude::*;
+use vlem_core::{DepthImage, Intrinsics, RgbImage};
+
+/// Pinhole parameters of one pyramid level, in f32 for the inner loops.
+#[derive(Clone, Copy, Debug, Default, PartialEq)]
+pub struct Camera {
+    /// Focal length along x (pixels).
+    pub fx: f32,
+    /// Focal length along y (pixels).
+    pub fy: f32,
+    /// Principal point x (pixels).
+    pub cx: f32,
+    /// Principal point y (pixels).
+    pub cy: f32,
+}
+
+impl Camera {
+    fn from_intrinsics(k: &Intrinsics) -> Self {
+        Self {
+            fx: k.fx as f32,
+            fy: k.fy as f32,
+            cx: k.cx as f32,
+            cy: k.cy as f32,
+        }
+    }
+
+    fn halved(&self) -> Self {
+        Self {
+            fx: self.fx * 0.5,
+            fy: self.fy * 0.5,
+            cx: self.cx * 0.5,
+            cy: self.cy * 0.5,
+        }
+    }
+}
+
+/// What a pixel offers as the *target* of a projective association.
+///
+/// Packed in one 32-byte record so a lookup touches one cache line.
+#[derive(Clone, Copy, Debug, Default, PartialEq)]
+pub struct TargetPixel {
+    /// Depth in metres; NaN when invalid.
+    pub depth: f32,
+    /// Sobel x derivative of depth (scaled by 1/8); NaN next to invalid depth.
+    pub depth_dx: f32,
+    /// Sobel y derivative of depth (scaled by 1/8).
+    pub depth_dy: f32,
+    /// Intensity in `[0, 1]`.
+    pub intensity: f32,
+    /// Sobel x derivative of intensity (scaled by 1/8).
+    pub intensity_dx: f32,
+    /// Sobel y derivative of intensity (scaled by 1/8).
+    pub intensity_dy: f32,
+    /// Unused padding that keeps the record at 32 bytes.
+    pad: [f32; 2],
+}
+
+/// A valid pixel of the *source* frame: its 3D point in the source camera and its intensity.
+#[derive(Clone, Copy, Debug, PartialEq)]
+pub struct SourcePoint {
+    /// Camera-frame point (metres).
+    pub point: [f32; 3],
+    /// Intensity in `[0, 1]`.
+    pub intensity: f32,
+}
+
+/// One pyramid level.
+#[derive(Clone, Debug, Default)]
+pub struct Level {
+    /// Width in pixels.
+    pub width: usize,
+    /// Height in pixels.
+    pub height: usize,
+    /// The level's pinhole parameters.
+    pub camera: Camera,
+    /// Row-major target records.
+    pub target: Vec<TargetPixel>,
+    /// Unit normals (camera frame) from the smoothed depth, for point-to-plane; NaN where
+    /// unknown. Empty unless asked for.
+    pub normals: Vec<[f32; 3]>,
+    /// Every valid pixel as a source point.
+    pub source: Vec<SourcePoint>,
+    /// The largest valid depth of the level (metres), bounding how far a rotation moves a point.
+    pub max_depth: f32,
+    /// Depth (NaN = invalid), the input of the next level.
+    depth: Vec<f32>,
+    /// Intensity, the input of the next level.
+    intensity: Vec<f32>,
+    /// Scratch for smoothed depth (normals).
+    smooth: Vec<f32>,
+}
+
+/// A frame prepared for odometry, finest level first.
+///
+/// Rebuilding an existing pyramid ([`Pyramid::rebuild`]) reuses its buffers: a fresh 640×480
+/// pyramid is ~15 MB, and first-touch page faults on new allocations cost as much as the
+/// arithmetic.
+#[derive(Clone, Debug, Default)]
+pub struct Pyramid {
+    /// Levels, finest (full resolution) first.
+    pub levels: Vec<Level>,
+    /// Valid depth pixels at full resolution.
+    pub valid_pixels: usize,
+}
+
+/// How a pyramid is built.
+#[derive(Clone, Copy, Debug, PartialEq)]
+pub struct PyramidParams {
+    /// Number of levels (≥ 1).
+    pub levels: usize,
+    /// Depths beyond this (metres) are dropped.
+    pub depth_max: f32,
+    /// Depth neighbours further than this from the centre are left out when downsampling.
+    pub depth_downsample_diff: f32,
+    /// Whether to compute normals (point-to-plane needs them).
+    pub normals: bool,
+}
+
+impl Pyramid {
+    /// Prepares an RGB-D frame.
+    pub fn build(
+        colour: &RgbImage,
+        depth: &DepthImage,
+        intrinsics: &Intrinsics,
+        params: &PyramidParams,
+    ) -> Self {
+        let mut pyramid = Self::default();
+        pyramid.rebuild(colour, depth, intrinsics, params);
+        pyramid
+    }
+
+    /// Prepares an RGB-D frame in place, reusing this pyramid's buffers.
+    pub fn rebuild(
+        &mut self,
+        colour: &RgbImage,
+        depth: &DepthImage,
+        intrinsics: &Intrinsics,
+        params: &PyramidParams,
+    ) {
+        let (mut w, mut h) = (depth.width() as usize, depth.height() as usize);
+        let mut count = 1;
+        while count < params.levels && w >= 4 && h >= 4 {
+            w /= 2;
+            h /= 2;
+            count += 1;
+        }
+        self.levels.resize_with(count, Level::default);
+        self.levels.truncate(count);
+
+        let depth_max = params.depth_max;
+        let first = &mut self.levels[0];
+        first.width = depth.width() as usize;
+        first.height = depth.height() as usize;
+        first.camera = Camera::from_intrinsics(intrinsics);
+        first.depth.clear();
+        first.depth.extend(depth.as_raw().iter().map(|&d| {
+            if d.is_finite() && d > 0.0 && d <= depth_max {
+                d
+            } else {
+                f32::NAN
+            }
+        }));
+        self.valid_pixels = first.depth.iter().filter(|d| !d.is_nan()).count();
+        first.intensity.clear();
+        first
+            .intensity
+            .extend(colour.as_raw().chunks_exact(3).map(|c| {
+                (0.299 * f32::from(c[0]) + 0.587 * f32::from(c[1]) + 0.114 * f32::from(c[2]))
+                    / 255.0
+            }));
+        for level in 1..count {
+            let (finer, coarser) = self.levels.split_at_mut(level);
+            let (from, to) = (&finer[level - 1], &mut coarser[0]);
+            to.width = from.width / 2;
+            to.height = from.height / 2;
+            to.camera = from.camera.halved();
+            pyr_down_depth_into(
+                &from.depth,
+                from.width,
+                from.height,
+                params.depth_downsample_diff,
+                &mut to.depth,
+            );
+            pyr_down_into(&from.intensity, from.width, from.height, &mut to.intensity);
+        }
+        for level in &mut self.levels {
+            level.prepare(params);
+        }
+    }
+}
+
+impl Level {
+    /// Fills the target records, source points and (if asked) normals from depth and intensity.
+    fn prepare(&mut self, params: &PyramidParams) {
+        let (width, height, camera) = (self.width, self.height, self.camera);
+        target_records(
+            &self.depth,
+            &self.intensity,
+            width,
+            height,
+            params.depth_downsample_diff * 0.5,
+            &mut self.target,
+        );
+        self.source.clear();
+        self.source.extend(
+            self.depth
+                .iter()
+                .zip(&self.intensity)
+                .enumerate()
+                .filter(|(_, (d, _))| !d.is_nan())
+                .map(|(i, (&z, &intensity))| {
+                    let u = (i % width) as f32;
+                    let v = (i / width) as f32;
+                    SourcePoint {
+                        point: [
+                            (u - camera.cx) * z / camera.fx,
+                            (v - camera.cy) * z / camera.fy,
+                            z,
+                        ],
+                        intensity,
+                    }
+                }),
+        );
+        self.max_depth = self.source.iter().map(|s| s.point[2]).fold(0.0, f32::max);
+        if params.normals {
+            smooth_depth_into(
+                &self.depth,
+                width,
+                height,
+                params.depth_downsample_diff,
+                &mut self.smooth,
+            );
+            normal_map_into(&self.smooth, width, height, camera, &mut self.normals);
+        } else {
+            self.normals.clear();
+        }
+    }
+}
+
+/// The target records in one pass: Sobel derivatives of depth and intensity (scaled by 1/8,
+/// borders clamped) from the same 3×3 window. The depth derivative is unknown (NaN) next to a
+/// hole and where the window spans a discontinuity (a neighbour more than `max_diff` from the
+/// centre): a slope measured across an occluding edge describes neither surface and would pull
+/// the solve towards the edge.
+fn target_records(
+    depth: &[f32],
+    intensity: &[f32],
+    width: usize,
+    height: usize,
+    max_diff: f32,
+    target: &mut Vec<TargetPixel>,
+) {
+    target.resize(width * height, TargetPixel::default());
+    target
+        .par_chunks_mut(width.max(1))
+        .enumerate()
+        .for_each(|(y, row)| {
+            let up = y.saturating_sub(1) * width;
+            let mid = y * width;
+            let down = (y + 1).min(height - 1) * width;
+            let (d0, d1, d2) = (
+                &depth[up..up + width],
+                &depth[mid..mid + width],
+                &depth[down..down + width],
+            );
+            let (i0, i1, i2) = (
+                &intensity[up..up + width],
+                &intensity[mid..mid + width],
+                &intensity[down..down + width],
+            );
+            let record = |d: [[f32; 3]; 3], i: [[f32; 3]; 3]| -> TargetPixel {
+                let (ix, iy) = sobel3(&i);
+                let centre = d[1][1];
+                let mut smooth = true;
+                for n in d.iter().flatten() {
+                    // NaN fails the comparison: a hole also makes the slope unknown.
+                    smooth &= (n - centre).abs() <= max_diff;
+                }
+                let (dx, dy) = if smooth {
+                    sobel3(&d)
+                } else {
+                    (f32::NAN, f32::NAN)
+                };
+                TargetPixel {
+                    depth: centre,
+                    depth_dx: dx,
+                    depth_dy: dy,
+                    intensity: i[1][1],
+                    intensity_dx: ix,
+                    intensity_dy: iy,
+                    pad: [0.0; 2],
+                }
+            };
+            let clamped = |x: usize| {
+                let l = x.saturating_sub(1);
+                let r = (x + 1).min(width - 1);
+                let d = [
+                    [d0[l], d0[x], d0[r]],
+                    [d1[l], d1[x], d1[r]],
+                    [d2[l], d2[x], d2[r]],
+                ];
+                let i = [
+                    [i0[l], i0[x], i0[r]],
+                    [i1[l], i1[x], i1[r]],
+                    [i2[l], i2[x], i2[r]],
+                ];
+                record(d, i)
+            };
+            // Interior pixels through 3-wide windows (no clamping, no per-tap bounds checks);
+            // the two border columns clamped.
+            let window = |w: &[f32]| [w[0], w[1], w[2]];
+            let interior = d0
+                .windows(3)
+                .zip(d1.windows(3))
+                .zip(d2.windows(3))
+                .zip(i0.windows(3).zip(i1.windows(3)).zip(i2.windows(3)));
+            for (out, (((a, b), c), ((e, f), g))) in row.iter_mut().skip(1).zip(interior) {
+                *out = record(
+                    [window(a), window(b), window(c)],
+                    [window(e), window(f), window(g)],
+                );
+            }
+            if let Some(first) = row.first_mut() {
+                *first = clamped(0);
+            }
+            if width > 1
+                && let Some(last) = row.last_mut()
+            {
+                *last = clamped(width - 1);
+            }
+        });
+}
+
+/// Sobel responses of a 3×3 window, scaled by 1/8 to per-pixel slopes.
+#[inline(always)]
+fn sobel3(w: &[[f32; 3]; 3]) -> (f32, f32) {
+    let gx = (w[0][2] - w[0][0]) + 2.0 * (w[1][2] - w[1][0]) + (w[2][2] - w[2][0]);
+    let gy = (w[2][0] - w[0][0]) + 2.0 * (w[2][1] - w[0][1]) + (w[2][2] - w[0][2]);
+    (gx * 0.125, gy * 0.125)
+}
+
+/// Binomial 5-tap weights (1 4 6 4 1) / 16.
+const GAUSS5: [f32; 5] = [1.0 / 16.0, 4.0 / 16.0, 6.0 / 16.0, 4.0 / 16.0, 1.0 / 16.0];
+
+/// Gaussian blur + every second pixel, borders clamped.
+pub fn pyr_down(image: &[f32], width: usize, height: usize) -> Vec<f32> {
+    let mut out = Vec::new();
+    pyr_down_into(image, width, height, &mut out);
+    out
+}
+
+fn pyr_down_into(image: &[f32], width: usize, height: usize, out: &mut Vec<f32>) {
+    let (w2, h2) = (width / 2, height / 2);
+    out.clear();
+    out.resize(w2 * h2, 0.0);
+    out.par_chunks_mut(w2.max(1))
+        .enumerate()
+        .for_each(|(y, row)| {
+            for (x, out) in row.iter_mut().enumerate() {
+                let mut sum = 0.0;
+                for (dy, wy) in GAUSS5.iter().enumerate() {
+                    let yy = (2 * y + dy).saturating_sub(2).min(height - 1);
+                    let line = &image[yy * width..(yy + 1) * width];
+                    for (dx, wx) in GAUSS5.iter().enumerate() {
+                        let xx = (2 * x + dx).saturating_sub(2).min(width - 1);
+                        sum += wy * wx * line[xx];
+                    }
+                }
+                *out = sum;
+            }
+        });
+}
+
+/// Gaussian downsampling of depth that ignores invalid neighbours and neighbours further than
+/// `max_diff` from the centre; an invalid centre stays invalid.
+pub fn pyr_down_depth(depth: &[f32], width: usize, height: usize, max_diff: f32) -> Vec<f32> {
+    let mut out = Vec::new();
+    pyr_down_depth_into(depth, width, height, max_diff, &mut out);
+    out
+}
+
+fn pyr_down_depth_into(
+    depth: &[f32],
+    width: usize,
+    height: usize,
+    max_diff: f32,
+    out: &mut Vec<f32>,
+) {
+    let (w2, h2) = (width / 2, height / 2);
+    out.clear();
+    out.resize(w2 * h2, f32::NAN);
+    out.par_chunks_mut(w2.max(1))
+        .enumerate()
+        .for_each(|(y, row)| {
+            for (x, out) in row.iter_mut().enumerate() {
+                let centre = depth[2 * y * width + 2 * x];
+                if centre.is_nan() {
+                    continue;
+                }
+                *out = weighted_neighbourhood(depth, width, height, 2 * x, 2 * y, centre, max_diff);
+            }
+        });
+}
+
+/// Edge-preserving 5×5 Gaussian smoothing of depth (for normals), same neighbour rule as
+/// [`pyr_down_depth`].
+fn smooth_depth_into(
+    depth: &[f32],
+    width: usize,
+    height: usize,
+    max_diff: f32,
+    out: &mut Vec<f32>,
+) {
+    out.clear();
+    out.resize(width * height, f32::NAN);
+    out.par_chunks_mut(width.max(1))
+        .enumerate()
+        .for_each(|(y, row)| {
+            for (x, out) in row.iter_mut().enumerate() {
+                let centre = depth[y * width + x];
+                if !centre.is_nan() {
+                    *out = weighted_neighbourhood(depth, width, height, x, y, centre, max_diff);
+                }
+            }
+        });
+}
+
+#[inline]
+fn weighted_neighbourhood(
+    depth: &[f32],
+    width: usize,
+    height: usize,
+    x: usize,
+    y: usize,
+    centre: f32,
+    max_diff: f32,
+) -> f32 {
+    let mut sum = 0.0;
+    let mut weight = 0.0;
+    let (x0, x1) = (x.saturating_sub(2), (x + 3).min(width));
+    let (y0, y1) = (y.saturating_sub(2), (y + 3).min(height));
+    for yy in y0..y1 {
+        let wy = GAUSS5[yy + 2 - y];
+        let line = &depth[yy * width + x0..yy * width + x1];
+        for (d, wx) in line.iter().zip(&GAUSS5[x0 + 2 - x..]) {
+            // NaN fails the comparison, so invalid neighbours drop out here too.
+            if (d - centre).abs() < max_diff {
+                sum += wy * wx * d;
+                weight += wy * wx;
+            }
+        }
+    }
+    sum / weight
+}
+
+/// 3×3 Sobel derivatives scaled by 1/8 (so they are per-pixel slopes); NaN inputs make the
+/// neighbouring derivatives NaN, borders are clamped.
+pub fn sobel(image: &[f32], width: usize, height: usize) -> (Vec<f32>, Vec<f32>) {
+    let mut dx = vec![0.0; width * height];
+    let mut dy = vec![0.0; width * height];
+    dx.par_chunks_mut(width.max(1))
+        .zip(dy.par_chunks_mut(width.max(1)))
+        .enumerate()
+        .for_each(|(y, (row_dx, row_dy))| {
+            let up = &image[y.saturating_sub(1) * width..][..width];
+            let mid = &image[y * width..][..width];
+            let down = &image[(y + 1).min(height - 1) * width..][..width];
+            for x in 0..width {
+                let l = x.saturating_sub(1);
+                let r = (x + 1).min(width - 1);
+                let gx = (up[r] - up[l]) + 2.0 * (mid[r] - mid[l]) + (down[r] - down[l]);
+                let gy = (down[l] - up[l]) + 2.0 * (down[x] - up[x]) + (down[r] - up[r]);
+                row_dx[x] = gx * 0.125;
+                row_dy[x] = gy * 0.125;
+            }
+        });
+    (dx, dy)
+}
+
+/// Normals from the cross product of the right and down neighbours' 3D points, oriented
+/// towards the camera.
+fn normal_map_into(
+    depth: &[f32],
+    width: usize,
+    height: usize,
+    camera: Camera,
+    normals: &mut Vec<[f32; 3]>,
+) {
+    let point = |x: usize, y: usize| -> [f32; 3] {
+        let z = depth[y * width + x];
+        [
+            (x as f32 - camera.cx) * z / camera.fx,
+            (y as f32 - camera.cy) * z / camera.fy,
+            z,
+        ]
+    };
+    normals.clear();
+    normals.resize(width * height, [f32::NAN; 3]);
+    normals
+        .par_chunks_mut(width.max(1))
+        .enumerate()
+        .for_each(|(y, row)| {
+            if y + 1 >= height {
+                return;
+            }
+            for (x, n) in row.iter_mut().enumerate().take(width.saturating_sub(1)) {
+                let p = point(x, y);
+                let a = point(x + 1, y);
+                let b = point(x, y + 1);
+                let e1 = [a[0] - p[0], a[1] - p[1], a[2] - p[2]];
+                let e2 = [b[0] - p[0], b[1] - p[1], b[2] - p[2]];
+                let c = [
+                    e1[1] * e2[2] - e1[2] * e2[1],
+                    e1[2] * e2[0] - e1[0] * e2[2],
+                    e1[0] * e2[1] - e1[1] * e2[0],
+                ];
+                let norm = (c[0] * c[0] + c[1] * c[1] + c[2] * c[2]).sqrt();
+                if norm.is_finite() && norm > 0.0 {
+                    // Towards the camera: n · p < 0.
+                    let sign = if c[0] * p[0] + c[1] * p[1] + c[2] * p[2] > 0.0 {
+                        -1.0
+                    } else {
+                        1.0
+                    };
+                    *n = [sign * c[0] / norm, sign * c[1] / norm, sign * c[2] / norm];
+                }
+            }
+        });
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn sobel_of_a_ramp_is_its_slope() {
+        let (w, h) = (6, 5);
+        let image: Vec<f32> = (0..w * h).map(|i| 0.5 * (i % w) as f32).collect();
+        let (dx, dy) = sobel(&image, w, h);
+        // Interior: slope 0.5 per pixel along x, 0 along y.
+        assert!((dx[2 * w + 2] - 0.5).abs() < 1e-6);
+        assert!(dy[2 * w + 2].abs() < 1e-6);
+    }
+
+    #[test]
+    fn pyr_down_keeps_a_constant_and_halves_the_size() {
+        let image = vec![0.25; 8 * 6];
+        let down = pyr_down(&image, 8, 6);
+        assert_eq!(down.len(), 4 * 3);
+        assert!(down.iter().all(|v| (v - 0.25).abs() < 1e-6));
+    }
+
+    #[test]
+    fn depth_downsampling_ignores_invalid_and_far_neighbours() {
+        let (w, h) = (8, 8);
+        let mut depth = vec![1.0; w * h];
+        depth[2 * w + 3] = f32::NAN; // invalid neighbour of output (1, 1)
+        depth[3 * w + 2] = 5.0; // far neighbour
+        let down = pyr_down_depth(&depth, w, h, 0.14);
+        assert!((down[4 + 1] - 1.0).abs() < 1e-6, "{}", down[5]);
+        depth[2 * w + 2] = f32::NAN; // the centre of output (1, 1)
+        let down = pyr_down_depth(&depth, w, h, 0.14);
+        assert!(down[4 + 1].is_nan());
+    }
+
+    #[test]
+    fn normals_of_a_fronto_parallel_plane_face_the_camera() {
+        let (w, h) = (16, 12);
+        let k = Intrinsics::new(w as u32, h as u32, 20.0, 20.0, 7.5, 5.5).unwrap();
+        let depth = DepthImage::new(w as u32, h as u32, vec![2.0; w * h]).unwrap();
+        let colour = RgbImage::filled(w as u32, h as u32, [10, 20, 30]);
+        let pyramid = Pyramid::build(
+            &colour,
+            &depth,
+            &k,
+            &PyramidParams {
+                levels: 2,
+                depth_max: 3.0,
+                depth_downsample_diff: 0.14,
+                normals: true,
+            },
+        );
+        assert_eq!(pyramid.levels.len(), 2);
+        assert_eq!(pyramid.valid_pixels, w * h);
+        let n = pyramid.levels[0].normals[5 * w + 5];
+        assert!((n[2] + 1.0).abs() < 1e-5, "{n:?}");
+        assert_eq!(pyramid.levels[1].width, 8);
+        assert!((pyramid.levels[1].camera.fx - 10.0).abs() < 1e-6);
+        let intensity = pyramid.levels[0].target[0].intensity;
+        let expected = (0.299 * 10.0 + 0.587 * 20.0 + 0.114 * 30.0) / 255.0;
+        assert!((intensity - expected).abs() < 1e-6);
+    }
+
+    #[test]
+    fn depth_beyond_the_maximum_is_invalid() {
+        let k = Intrinsics::new(4, 4, 4.0, 4.0, 1.5, 1.5).unwrap();
+        let mut raw = vec![1.0; 16];
+        raw[0] = 3.5;
+        raw[1] = -1.0;
+        raw[2] = f32::NAN;
+        let depth = DepthImage::new(4, 4, raw).unwrap();
+        let colour = RgbImage::filled(4, 4, [0, 0, 0]);
+        let params = PyramidParams {
+            levels: 1,
+            depth_max: 3.0,
+            depth_downsample_diff: 0.14,
+            normals: false,
+        };
+        let pyramid = Pyramid::build(&colour, &depth, &k, &params);
+        assert_eq!(pyramid.valid_pixels, 13);
+        assert_eq!(pyramid.levels[0].source.len(), 13);
+    }
+}
