@@ -1,0 +1,75 @@
+#!/usr/bin/env bash
+# vlem's two dense trackers side by side with Open3D 0.19's on the same frames, in one run:
+# ms per frame (tracking only, image loading excluded on both sides) and RPE/ATE against the same
+# pseudo ground truth. Run on a quiet machine: every timing here shares the same cores.
+#
+#   bash bench/setup-open3d.sh                 # once: bench/.venv with open3d==0.19.0
+#   bash bench/tracking_side_by_side.sh [SEQUENCE_DIR]
+#
+# SEQUENCE_DIR defaults to ../shared/data/icl-livingroom1 (150 frames, Open3D's offline
+# trajectory as pseudo ground truth). Results: out/bench/tracking-side-by-side.json and a table.
+set -euo pipefail
+cd "$(dirname "$0")/.."
+SEQ="${1:-../shared/data/icl-livingroom1}"
+REF="$SEQ/trajectory_open3d_estimate.log"
+OUT=out/bench
+mkdir -p "$OUT"
+
+cargo build --release --quiet
+for tracker in odometry frame-to-model; do
+  target/release/vlem run --config "configs/track-$tracker.toml" --dataset "$SEQ" \
+    --out "$OUT/vlem-$tracker" --no-colour-model
+  target/release/vlem eval trajectory --estimate "$OUT/vlem-$tracker/trajectory.tum" \
+    --reference "$REF" --json "$OUT/vlem-$tracker/eval.json" > /dev/null
+done
+
+if [ -x bench/.venv/bin/python ]; then
+  bench/.venv/bin/python bench/open3d_tracking.py "$SEQ" --out "$OUT"
+  for tracker in odometry frame-to-model; do
+    target/release/vlem eval trajectory --estimate "$OUT/open3d-$tracker.tum" \
+      --reference "$REF" --json "$OUT/open3d-$tracker-eval.json" > /dev/null
+  done
+else
+  echo "bench/.venv missing: run bench/setup-open3d.sh for the Open3D side" >&2
+fi
+
+python3 - "$OUT" <<'PY'
+import json, os, sys
+out = sys.argv[1]
+def load(path):
+    return json.load(open(path)) if os.path.exists(path) else None
+o3d = load(f"{out}/open3d-tracking.json")
+rows = {}
+for tracker, key in [("odometry", "odometry"), ("frame-to-model", "frame_to_model")]:
+    stats = load(f"{out}/vlem-{tracker}/stats.json")
+    ours = load(f"{out}/vlem-{tracker}/eval.json")
+    theirs = load(f"{out}/open3d-{tracker}-eval.json")
+    row = {
+        "vlem_ms_per_frame": stats["mean_ms"]["track"],
+        "vlem_rpe_trans_rmse_m": ours["rpe"]["translation_m"]["rmse"],
+        "vlem_rpe_rot_rmse_deg": ours["rpe"]["rotation_deg"]["rmse"],
+        "vlem_ate_rmse_m": ours["ate"]["position_m"]["rmse"],
+        "vlem_frames_lost": stats["frames"]["lost"],
+    }
+    if o3d and theirs:
+        row.update({
+            "open3d_ms_per_frame": o3d[key]["timing_per_frame"]["mean_ms"],
+            "open3d_rpe_trans_rmse_m": theirs["rpe"]["translation_m"]["rmse"],
+            "open3d_rpe_rot_rmse_deg": theirs["rpe"]["rotation_deg"]["rmse"],
+            "open3d_ate_rmse_m": theirs["ate"]["position_m"]["rmse"],
+        })
+        row["time_ratio_vlem_over_open3d"] = row["vlem_ms_per_frame"] / row["open3d_ms_per_frame"]
+        row["rpe_ratio_vlem_over_open3d"] = row["vlem_rpe_trans_rmse_m"] / row["open3d_rpe_trans_rmse_m"]
+    rows[tracker] = row
+json.dump(rows, open(f"{out}/tracking-side-by-side.json", "w"), indent=1)
+print(f"{'tracker':16} {'side':7} {'ms/frame':>9} {'RPE mm':>8} {'RPE deg':>8} {'ATE cm':>7}")
+for tracker, r in rows.items():
+    for side in ["vlem", "open3d"]:
+        if f"{side}_ms_per_frame" in r:
+            print(f"{tracker:16} {side:7} {r[side + '_ms_per_frame']:9.1f} "
+                  f"{1e3 * r[side + '_rpe_trans_rmse_m']:8.2f} {r[side + '_rpe_rot_rmse_deg']:8.3f} "
+                  f"{1e2 * r[side + '_ate_rmse_m']:7.2f}")
+    if "time_ratio_vlem_over_open3d" in r:
+        print(f"{tracker:16} ratio   time {r['time_ratio_vlem_over_open3d']:.2f}x, "
+              f"RPE {r['rpe_ratio_vlem_over_open3d']:.2f}x (vlem / Open3D)")
+PY
