@@ -1,15 +1,17 @@
-//! Dense RGB-D odometry timing on the committed living-room frames (640×480):
+//! Dense tracking timing on the committed living-room frames (640×480):
 //! `cargo bench -p vlem-trackers --bench odometry`. Prints milliseconds per frame for preparing
-//! the pyramid and for registering consecutive frames, per method. `RAYON_NUM_THREADS` sets the
-//! thread count.
+//! the pyramid and for registering consecutive frames, per method, then for both trackers end to
+//! end. `RAYON_NUM_THREADS` sets the thread count.
 #![allow(clippy::unwrap_used, clippy::expect_used, reason = "bench binary")]
 
 use std::path::Path;
 use std::time::Instant;
 
 use nalgebra::Isometry3;
+use vlem_core::Tracker;
 use vlem_core::config::DatasetConfig;
-use vlem_trackers::odometry::{Method, OdometryConfig, Pyramid, register};
+use vlem_trackers::frame_to_model::{FrameToModelConfig, FrameToModelTracker};
+use vlem_trackers::odometry::{Method, OdometryConfig, OdometryTracker, Pyramid, register};
 
 fn main() {
     let dir = Path::new(env!("CARGO_MANIFEST_DIR")).join("../data/living-room");
@@ -57,6 +59,21 @@ fn main() {
             "{method:?}: prepare {prepare:.1} ms/frame, register {solve:.1} ms/pair ({:.1} iterations), total {:.1} ms/frame",
             iterations as f64 / (frames.len() - 1) as f64,
             prepare + solve
+        );
+    }
+    let trackers: Vec<Box<dyn Tracker>> = vec![
+        Box::new(OdometryTracker::new(OdometryConfig::default()).unwrap()),
+        Box::new(FrameToModelTracker::new(FrameToModelConfig::default()).unwrap()),
+    ];
+    for mut tracker in trackers {
+        let t = Instant::now();
+        for frame in &frames {
+            tracker.track(frame).unwrap();
+        }
+        println!(
+            "{}: {:.1} ms/frame end to end",
+            tracker.name(),
+            t.elapsed().as_secs_f64() * 1e3 / frames.len() as f64
         );
     }
 }

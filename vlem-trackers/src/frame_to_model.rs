@@ -29,7 +29,7 @@ use vlem_core::{
 };
 
 use crate::error::TrackerError;
-use crate::odometry::{OdometryConfig, Pyramid, initial_pose, lost, tracking};
+use crate::odometry::{OdometryConfig, Pyramid, PyramidParams, initial_pose, lost, tracking};
 use crate::tsdf::{TsdfConfig, TsdfVolume};
 
 /// The registered name.
@@ -104,6 +104,8 @@ pub struct FrameToModelTracker {
     config: FrameToModelConfig,
     volume: TsdfVolume,
     model: Option<Model>,
+    /// The current frame's pyramid, rebuilt in place every frame (reusing its buffers).
+    current: Pyramid,
     pose: Option<Pose>,
 }
 
@@ -119,6 +121,7 @@ impl FrameToModelTracker {
             config,
             volume,
             model: None,
+            current: Pyramid::default(),
             pose: None,
         })
     }
@@ -133,12 +136,19 @@ impl FrameToModelTracker {
         self.volume
             .integrate(&frame.depth, &frame.colour, &frame.intrinsics, &pose);
         let cast = self.volume.raycast(&frame.intrinsics, &pose);
-        let pyramid = Pyramid::build(
-            &cast.colour,
-            &cast.depth,
-            &frame.intrinsics,
-            &self.config.odometry.pyramid_params(),
-        );
+        // The previous model's pyramid is rebuilt in place: fresh 15 MB buffers every frame cost
+        // as much in page faults as the arithmetic.
+        let mut pyramid = self
+            .model
+            .take()
+            .map(|model| model.pyramid)
+            .unwrap_or_default();
+        // The model is only ever registered to.
+        let params = PyramidParams {
+            as_source: false,
+            ..self.config.odometry.pyramid_params()
+        };
+        pyramid.rebuild(&cast.colour, &cast.depth, &frame.intrinsics, &params);
         self.model = Some(Model { pyramid, pose });
     }
 }
@@ -163,21 +173,22 @@ impl Tracker for FrameToModelTracker {
 
     fn track(&mut self, frame: &Frame) -> vlem_core::Result<TrackedPose> {
         let odometry = &self.config.odometry;
-        let pyramid = Pyramid::build(
-            &frame.colour,
-            &frame.depth,
-            &frame.intrinsics,
-            &odometry.pyramid_params(),
-        );
+        // The frame is only ever registered, never registered to.
+        let params = PyramidParams {
+            as_target: false,
+            ..odometry.pyramid_params()
+        };
+        self.current
+            .rebuild(&frame.colour, &frame.depth, &frame.intrinsics, &params);
         let fallback = *self.pose.get_or_insert_with(|| initial_pose(frame));
-        if let Some(reason) = odometry.check_frame(frame, &pyramid) {
+        if let Some(reason) = odometry.check_frame(frame, &self.current) {
             return Ok(lost(fallback, reason));
         }
         let Some(model) = &self.model else {
             self.integrate_and_cast(frame, fallback);
             return Ok(tracking(fallback));
         };
-        match odometry.track(&pyramid, &model.pyramid, &Isometry3::identity()) {
+        match odometry.track(&self.current, &model.pyramid, &Isometry3::identity()) {
             Ok(registration) => {
                 let pose = model.pose * registration.source_to_target;
                 self.pose = Some(pose);

@@ -146,13 +146,16 @@ impl OdometryConfig {
         Ok(())
     }
 
-    /// How frames are prepared for this configuration.
+    /// How frames are prepared for this configuration, for both roles (registered, and
+    /// registered to).
     pub fn pyramid_params(&self) -> PyramidParams {
         PyramidParams {
             levels: self.iterations.len(),
             depth_max: self.depth_max,
             depth_downsample_diff: 2.0 * self.depth_outlier_trunc,
             normals: self.method == Method::PointToPlane,
+            as_source: true,
+            as_target: true,
         }
     }
 

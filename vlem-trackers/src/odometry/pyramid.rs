@@ -97,6 +97,8 @@ pub struct Level {
     intensity: Vec<f32>,
     /// Scratch for smoothed depth (normals).
     smooth: Vec<f32>,
+    /// Scratch for the depth and intensity row passes of the target records.
+    passes: [RowPasses; 2],
 }
 
 /// A frame prepared for odometry, finest level first.
@@ -121,8 +123,12 @@ pub struct PyramidParams {
     pub depth_max: f32,
     /// Depth neighbours further than this from the centre are left out when downsampling.
     pub depth_downsample_diff: f32,
-    /// Whether to compute normals (point-to-plane needs them).
+    /// Whether to compute normals (point-to-plane needs them on the target).
     pub normals: bool,
+    /// Whether the frame will be registered (needs source points).
+    pub as_source: bool,
+    /// Whether frames will be registered to it (needs target records and normals).
+    pub as_target: bool,
 }
 
 impl Pyramid {
@@ -202,15 +208,29 @@ impl Level {
     /// Fills the target records, source points and (if asked) normals from depth and intensity.
     fn prepare(&mut self, params: &PyramidParams) {
         let (width, height, camera) = (self.width, self.height, self.camera);
-        target_records(
-            &self.depth,
-            &self.intensity,
-            width,
-            height,
-            params.depth_downsample_diff * 0.5,
-            &mut self.target,
-        );
+        self.target.clear();
+        if params.as_target {
+            let [d, i] = &mut self.passes;
+            target_records(
+                &self.depth,
+                &self.intensity,
+                width,
+                height,
+                params.depth_downsample_diff * 0.5,
+                &mut self.target,
+                d,
+                i,
+            );
+        }
         self.source.clear();
+        if !params.as_source {
+            self.max_depth = 0.0;
+            self.normals.clear();
+            if params.as_target && params.normals {
+                self.compute_normals(params);
+            }
+            return;
+        }
         self.source.extend(
             self.depth
                 .iter()
@@ -231,26 +251,36 @@ impl Level {
                 }),
         );
         self.max_depth = self.source.iter().map(|s| s.point[2]).fold(0.0, f32::max);
-        if params.normals {
-            smooth_depth_into(
-                &self.depth,
-                width,
-                height,
-                params.depth_downsample_diff,
-                &mut self.smooth,
-            );
-            normal_map_into(&self.smooth, width, height, camera, &mut self.normals);
-        } else {
-            self.normals.clear();
+        self.normals.clear();
+        if params.as_target && params.normals {
+            self.compute_normals(params);
         }
+    }
+
+    fn compute_normals(&mut self, params: &PyramidParams) {
+        let (width, height, camera) = (self.width, self.height, self.camera);
+        smooth_depth_into(
+            &self.depth,
+            width,
+            height,
+            params.depth_downsample_diff,
+            &mut self.smooth,
+        );
+        normal_map_into(&self.smooth, width, height, camera, &mut self.normals);
     }
 }
 
-/// The target records in one pass: Sobel derivatives of depth and intensity (scaled by 1/8,
-/// borders clamped) from the same 3×3 window. The depth derivative is unknown (NaN) next to a
-/// hole and where the window spans a discontinuity (a neighbour more than `max_diff` from the
-/// centre): a slope measured across an occluding edge describes neither surface and would pull
-/// the solve towards the edge.
+/// The target records: Sobel derivatives of depth and intensity (scaled by 1/8, borders clamped).
+/// The depth derivative is unknown (NaN) next to a hole and where the 3×3 window spans a
+/// discontinuity (its depths spread over more than `max_diff`): a slope measured across an
+/// occluding edge describes neither surface and would pull the solve towards the edge.
+///
+/// Computed separably (per-row horizontal sums, differences, minima and maxima, then combined
+/// over three rows), so each pass is a plain loop over a row that the compiler vectorises.
+#[allow(
+    clippy::too_many_arguments,
+    reason = "one call site; the buffers are reused"
+)]
 fn target_records(
     depth: &[f32],
     intensity: &[f32],
@@ -258,94 +288,108 @@ fn target_records(
     height: usize,
     max_diff: f32,
     target: &mut Vec<TargetPixel>,
+    d: &mut RowPasses,
+    i: &mut RowPasses,
 ) {
     target.resize(width * height, TargetPixel::default());
+    // Per row: [1 2 1] sum, [-1 0 1] difference, minimum and maximum over a clamped 3-pixel
+    // window.
+    let horizontal = |image: &[f32], out: &mut RowPasses| {
+        out.resize(width * height);
+        out.sum
+            .par_chunks_mut(width.max(1))
+            .zip(out.diff.par_chunks_mut(width.max(1)))
+            .zip(out.min.par_chunks_mut(width.max(1)))
+            .zip(out.max.par_chunks_mut(width.max(1)))
+            .enumerate()
+            .for_each(|(y, (((sum, diff), min), max))| {
+                let row = &image[y * width..(y + 1) * width];
+                for x in 0..width {
+                    let (l, c, r) = (
+                        row[x.saturating_sub(1)],
+                        row[x],
+                        row[(x + 1).min(width - 1)],
+                    );
+                    sum[x] = l + 2.0 * c + r;
+                    diff[x] = r - l;
+                    min[x] = l.min(c).min(r);
+                    max[x] = l.max(c).max(r);
+                }
+            });
+    };
+    horizontal(depth, d);
+    horizontal(intensity, i);
+    let (d, i) = (&*d, &*i);
     target
         .par_chunks_mut(width.max(1))
         .enumerate()
         .for_each(|(y, row)| {
-            let up = y.saturating_sub(1) * width;
-            let mid = y * width;
-            let down = (y + 1).min(height - 1) * width;
-            let (d0, d1, d2) = (
-                &depth[up..up + width],
-                &depth[mid..mid + width],
-                &depth[down..down + width],
+            let rows = [
+                y.saturating_sub(1) * width,
+                y * width,
+                (y + 1).min(height - 1) * width,
+            ];
+            let (ds, dd) = (
+                three_rows(&d.sum, rows, width),
+                three_rows(&d.diff, rows, width),
             );
-            let (i0, i1, i2) = (
-                &intensity[up..up + width],
-                &intensity[mid..mid + width],
-                &intensity[down..down + width],
+            let (dmin, dmax) = (
+                three_rows(&d.min, rows, width),
+                three_rows(&d.max, rows, width),
             );
-            let record = |d: [[f32; 3]; 3], i: [[f32; 3]; 3]| -> TargetPixel {
-                let (ix, iy) = sobel3(&i);
-                let centre = d[1][1];
-                let mut smooth = true;
-                for n in d.iter().flatten() {
-                    // NaN fails the comparison: a hole also makes the slope unknown.
-                    smooth &= (n - centre).abs() <= max_diff;
-                }
+            let (is, id) = (
+                three_rows(&i.sum, rows, width),
+                three_rows(&i.diff, rows, width),
+            );
+            let centre_depth = &depth[y * width..(y + 1) * width];
+            let centre_intensity = &intensity[y * width..(y + 1) * width];
+            for (x, out) in row.iter_mut().enumerate() {
+                // A NaN anywhere in the window makes the sums NaN (min/max skip NaN).
+                let window_sum = ds[0][x] + ds[1][x] + ds[2][x];
+                let spread = dmax[0][x].max(dmax[1][x]).max(dmax[2][x])
+                    - dmin[0][x].min(dmin[1][x]).min(dmin[2][x]);
+                let smooth = !window_sum.is_nan() && spread <= max_diff;
                 let (dx, dy) = if smooth {
-                    sobel3(&d)
+                    (
+                        0.125 * (dd[0][x] + 2.0 * dd[1][x] + dd[2][x]),
+                        0.125 * (ds[2][x] - ds[0][x]),
+                    )
                 } else {
                     (f32::NAN, f32::NAN)
                 };
-                TargetPixel {
-                    depth: centre,
+                *out = TargetPixel {
+                    depth: centre_depth[x],
                     depth_dx: dx,
                     depth_dy: dy,
-                    intensity: i[1][1],
-                    intensity_dx: ix,
-                    intensity_dy: iy,
+                    intensity: centre_intensity[x],
+                    intensity_dx: 0.125 * (id[0][x] + 2.0 * id[1][x] + id[2][x]),
+                    intensity_dy: 0.125 * (is[2][x] - is[0][x]),
                     pad: [0.0; 2],
-                }
-            };
-            let clamped = |x: usize| {
-                let l = x.saturating_sub(1);
-                let r = (x + 1).min(width - 1);
-                let d = [
-                    [d0[l], d0[x], d0[r]],
-                    [d1[l], d1[x], d1[r]],
-                    [d2[l], d2[x], d2[r]],
-                ];
-                let i = [
-                    [i0[l], i0[x], i0[r]],
-                    [i1[l], i1[x], i1[r]],
-                    [i2[l], i2[x], i2[r]],
-                ];
-                record(d, i)
-            };
-            // Interior pixels through 3-wide windows (no clamping, no per-tap bounds checks);
-            // the two border columns clamped.
-            let window = |w: &[f32]| [w[0], w[1], w[2]];
-            let interior = d0
-                .windows(3)
-                .zip(d1.windows(3))
-                .zip(d2.windows(3))
-                .zip(i0.windows(3).zip(i1.windows(3)).zip(i2.windows(3)));
-            for (out, (((a, b), c), ((e, f), g))) in row.iter_mut().skip(1).zip(interior) {
-                *out = record(
-                    [window(a), window(b), window(c)],
-                    [window(e), window(f), window(g)],
-                );
-            }
-            if let Some(first) = row.first_mut() {
-                *first = clamped(0);
-            }
-            if width > 1
-                && let Some(last) = row.last_mut()
-            {
-                *last = clamped(width - 1);
+                };
             }
         });
 }
 
-/// Sobel responses of a 3×3 window, scaled by 1/8 to per-pixel slopes.
-#[inline(always)]
-fn sobel3(w: &[[f32; 3]; 3]) -> (f32, f32) {
-    let gx = (w[0][2] - w[0][0]) + 2.0 * (w[1][2] - w[1][0]) + (w[2][2] - w[2][0]);
-    let gy = (w[2][0] - w[0][0]) + 2.0 * (w[2][1] - w[0][1]) + (w[2][2] - w[0][2]);
-    (gx * 0.125, gy * 0.125)
+/// The rows starting at `starts`, each `width` long.
+fn three_rows(values: &[f32], starts: [usize; 3], width: usize) -> [&[f32]; 3] {
+    starts.map(|r| &values[r..r + width])
+}
+
+/// Horizontal passes of [`target_records`] over a whole image (kept per level for reuse).
+#[derive(Clone, Debug, Default)]
+struct RowPasses {
+    sum: Vec<f32>,
+    diff: Vec<f32>,
+    min: Vec<f32>,
+    max: Vec<f32>,
+}
+
+impl RowPasses {
+    fn resize(&mut self, len: usize) {
+        for v in [&mut self.sum, &mut self.diff, &mut self.min, &mut self.max] {
+            v.resize(len, 0.0);
+        }
+    }
 }
 
 /// Binomial 5-tap weights (1 4 6 4 1) / 16.
@@ -552,6 +596,33 @@ mod tests {
     }
 
     #[test]
+    fn target_records_match_sobel_and_mask_depth_edges() {
+        let (w, h) = (9, 7);
+        let intensity: Vec<f32> = (0..w * h).map(|i| ((i * 37) % 11) as f32 / 11.0).collect();
+        // A smooth ramp with a 0.5 m step from column 6 on.
+        let depth: Vec<f32> = (0..w * h)
+            .map(|i| 1.0 + 0.01 * (i % w) as f32 + if i % w >= 6 { 0.5 } else { 0.0 })
+            .collect();
+        let mut target = Vec::new();
+        let mut passes = [RowPasses::default(), RowPasses::default()];
+        let [d, i] = &mut passes;
+        target_records(&depth, &intensity, w, h, 0.07, &mut target, d, i);
+        let (ix, iy) = sobel(&intensity, w, h);
+        let (dx, _) = sobel(&depth, w, h);
+        for k in 0..w * h {
+            assert!((target[k].intensity_dx - ix[k]).abs() < 1e-6, "{k}");
+            assert!((target[k].intensity_dy - iy[k]).abs() < 1e-6, "{k}");
+            assert_eq!(target[k].depth, depth[k]);
+        }
+        // On the ramp the slope is 0.01 per pixel; next to the step it is unknown.
+        let on_ramp = 3 * w + 2;
+        assert!((target[on_ramp].depth_dx - dx[on_ramp]).abs() < 1e-6);
+        assert!((target[on_ramp].depth_dx - 0.01).abs() < 1e-5);
+        assert!(target[3 * w + 5].depth_dx.is_nan() && target[3 * w + 6].depth_dx.is_nan());
+        assert!(!target[3 * w + 7].depth_dx.is_nan());
+    }
+
+    #[test]
     fn pyr_down_keeps_a_constant_and_halves_the_size() {
         let image = vec![0.25; 8 * 6];
         let down = pyr_down(&image, 8, 6);
@@ -587,6 +658,8 @@ mod tests {
                 depth_max: 3.0,
                 depth_downsample_diff: 0.14,
                 normals: true,
+                as_source: true,
+                as_target: true,
             },
         );
         assert_eq!(pyramid.levels.len(), 2);
@@ -614,6 +687,8 @@ mod tests {
             depth_max: 3.0,
             depth_downsample_diff: 0.14,
             normals: false,
+            as_source: true,
+            as_target: true,
         };
         let pyramid = Pyramid::build(&colour, &depth, &k, &params);
         assert_eq!(pyramid.valid_pixels, 13);
