@@ -199,12 +199,7 @@ struct RunOptions {
 }
 
 fn run(mut config: Config, config_dir: &Path, out: &Path, options: &RunOptions) -> Result<()> {
-    let RunOptions {
-        dataset,
-        max_frames,
-        ..
-    } = options;
-    let (dataset, max_frames) = (dataset.clone(), *max_frames);
+    let (dataset, max_frames) = (options.dataset.clone(), options.max_frames);
     let config_dir = config_dir
         .canonicalize()
         .with_context(|| format!("config folder {}", config_dir.display()))?;
@@ -289,7 +284,7 @@ fn run(mut config: Config, config_dir: &Path, out: &Path, options: &RunOptions) 
         .map(|e| e.reference.map(|pose| (e.timestamp, pose)))
         .collect();
     if let Some(reference) = reference.filter(|r| !r.is_empty())
-        && pipeline.tracker().name() != "ground-truth"
+        && !pipeline.tracker().needs_dataset_poses()
     {
         vlem_datasets::trajectory::write_tum(&out.join("reference.tum"), &reference)?;
     }
