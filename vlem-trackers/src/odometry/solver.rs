@@ -1,19 +1,24 @@
 //! Coarse-to-fine Gauss–Newton on SE(3): the rigid motion that aligns a source RGB-D frame with
 //! a target one by projective data association.
 //!
-//! Every valid source pixel is moved by the current estimate, projected into the target and
-//! paired with the nearest target pixel. It is an outlier when the target has no depth there or
-//! the depths differ by more than `depth_outlier_trunc`. Residuals (as in Open3D's
-//! `t.pipelines.odometry`, so parameters carry over):
+//! Every valid source pixel is moved by the current estimate and projected into the target. It is
+//! an outlier when any of the four target pixels around the projection has no depth within
+//! `depth_outlier_trunc` of the point's (point-to-plane: the nearest pixel). Residuals follow
+//! Open3D's `t.pipelines.odometry`, so parameters carry over:
 //! - photometric: `I_t(π(T p)) − I_s(p)`, Jacobian through the target's intensity gradient;
 //! - geometric (hybrid): `D_t(π(T p)) − (T p)_z`, Jacobian through the target's depth gradient;
 //! - point-to-plane: `n_t · (T p − q_t)` with the target's point and normal.
 //!
+//! Two deliberate differences from Open3D: target values are interpolated bilinearly at the
+//! projection (Open3D rounds to the nearest pixel, which stalls the solve up to half a pixel from
+//! the optimum), and depth slopes across a depth discontinuity are unknown rather than huge.
+//!
 //! The hybrid method weighs both terms by λ = ½. Each residual gets a Huber weight
-//! (iteratively reweighted least squares); the 6×6 normal equations are summed in parallel over
-//! pixel chunks and solved by Cholesky; the update `exp(δ)` multiplies the estimate from the
-//! left. A level ends after its iteration budget or when inlier fitness and RMSE change by less
-//! than the relative thresholds, as Open3D's convergence criteria do.
+//! (iteratively reweighted least squares, where Open3D clips only the gradient); the 6×6 normal
+//! equations are summed in parallel over pixel chunks and solved by Cholesky; the update `exp(δ)`
+//! multiplies the estimate from the left. A level ends after its iteration budget, when inlier
+//! fitness and RMSE change by less than the relative thresholds (Open3D's convergence criteria),
+//! or when an update moves no point by more than `min_update` metres.
 
 use nalgebra::{Cholesky, Isometry3, Matrix3, Matrix6, Vector3, Vector6};
 use rayon::prelude::*;
