@@ -412,39 +412,70 @@ impl Association<'_> {
     /// Open3D associates with the nearest pixel; that makes the residual piecewise constant
     /// under sub-pixel motion while the Jacobian assumes it varies smoothly, which stalls the
     /// solve half a pixel or more from the optimum. Interpolating keeps the two consistent.
-    #[inline]
-    fn associate_bilinear(&self, p: &[f32; 3]) -> Option<([f32; 3], TargetPixel)> {
-        let (q, u, v) = self.project(p)?;
-        let (w, h) = (self.target.width, self.target.height);
-        if !(u >= 0.0 && v >= 0.0 && u < (w - 1) as f32 && v < (h - 1) as f32) {
+    #[inline(always)]
+    fn associate_bilinear(&self, p: &[f32; 3]) -> Option<Bilinear<'_>> {
+        let m = &self.rotation;
+        let qx = m[(0, 0)] * p[0] + m[(0, 1)] * p[1] + m[(0, 2)] * p[2] + self.translation.x;
+        let qy = m[(1, 0)] * p[0] + m[(1, 1)] * p[1] + m[(1, 2)] * p[2] + self.translation.y;
+        let qz = m[(2, 0)] * p[0] + m[(2, 1)] * p[1] + m[(2, 2)] * p[2] + self.translation.z;
+        let cam = &self.target.camera;
+        let inv_z = 1.0 / qz;
+        let u = cam.fx * qx * inv_z + cam.cx;
+        let v = cam.fy * qy * inv_z + cam.cy;
+        let w = self.target.width;
+        let (u_max, v_max) = ((w - 1) as f32, (self.target.height - 1) as f32);
+        // NaN and points behind the camera fail too.
+        if !(qz > 0.0 && u >= 0.0 && v >= 0.0 && u < u_max && v < v_max) {
             return None;
         }
-        // Non-negative here, so truncation is floor (and no library call).
-        let (u0, v0) = (u as usize, v as usize);
+        // In range and non-negative here, so truncation is floor; via i32 because a float to
+        // usize conversion costs several times more on x86-64.
+        let (u0, v0) = (u as i32 as usize, v as i32 as usize);
         let (fu, fv) = (u - u0 as f32, v - v0 as f32);
         let i = v0 * w + u0;
         let t = &self.target.target;
-        let corners = [&t[i], &t[i + 1], &t[i + w], &t[i + w + 1]];
-        if !corners.iter().all(|c| (c.depth - q[2]).abs() <= self.trunc) {
+        let (top, bottom) = (t.get(i..i + 2)?, t.get(i + w..i + w + 2)?);
+        let (c00, c10, c01, c11) = (&top[0], &top[1], &bottom[0], &bottom[1]);
+        let near = |c: &TargetPixel| (c.depth - qz).abs() <= self.trunc;
+        if !(near(c00) && near(c10) && near(c01) && near(c11)) {
             return None;
         }
-        let weights = [
+        // Values are interpolated (the residual must vary smoothly); slopes come from the
+        // nearest corner (the Jacobian only steers the step, and this halves the work).
+        let nearest = match (fu >= 0.5, fv >= 0.5) {
+            (false, false) => c00,
+            (true, false) => c10,
+            (false, true) => c01,
+            (true, true) => c11,
+        };
+        let (w00, w10, w01, w11) = (
             (1.0 - fu) * (1.0 - fv),
             fu * (1.0 - fv),
             (1.0 - fu) * fv,
             fu * fv,
-        ];
-        // Values are interpolated (the residual must vary smoothly); slopes come from the
-        // nearest corner (the Jacobian only steers the step, and this halves the work).
-        let mut out = *corners[usize::from(fu >= 0.5) + 2 * usize::from(fv >= 0.5)];
-        out.depth = 0.0;
-        out.intensity = 0.0;
-        for (c, w) in corners.iter().zip(weights) {
-            out.depth += w * c.depth;
-            out.intensity += w * c.intensity;
-        }
-        Some((q, out))
+        );
+        Some(Bilinear {
+            q: [qx, qy, qz],
+            depth: w00 * c00.depth + w10 * c10.depth + w01 * c01.depth + w11 * c11.depth,
+            intensity: w00 * c00.intensity
+                + w10 * c10.intensity
+                + w01 * c01.intensity
+                + w11 * c11.intensity,
+            nearest,
+        })
     }
+}
+
+/// A source point moved into the target and the target sampled there.
+struct Bilinear<'a> {
+    /// The moved point (target camera frame).
+    q: [f32; 3],
+    /// Interpolated target depth.
+    depth: f32,
+    /// Interpolated target intensity.
+    intensity: f32,
+    /// The nearest of the four corners, whose slopes the Jacobians use.
+    nearest: &'a TargetPixel,
 }
 
 /// d(pixel-space image derivative)/dξ for an image with per-pixel slopes `(gx, gy)` at the
@@ -467,57 +498,20 @@ fn image_jacobian(gx: f32, gy: f32, q: &[f32; 3], fx: f32, fy: f32) -> [f32; 6] 
 
 fn accumulate_hybrid(ctx: &Association<'_>, points: &[SourcePoint], step: &mut ChunkSums) {
     let cam = ctx.target.camera;
-    let (w, h) = (ctx.target.width, ctx.target.height);
-    let (u_max, v_max) = ((w - 1) as f32, (h - 1) as f32);
-    let t = &ctx.target.target;
-    let m = &ctx.rotation;
     for s in points {
-        // The association of `Association::associate_bilinear`, written out: this loop is
-        // where dense odometry spends its time.
-        let p = &s.point;
-        let qx = m[(0, 0)] * p[0] + m[(0, 1)] * p[1] + m[(0, 2)] * p[2] + ctx.translation.x;
-        let qy = m[(1, 0)] * p[0] + m[(1, 1)] * p[1] + m[(1, 2)] * p[2] + ctx.translation.y;
-        let qz = m[(2, 0)] * p[0] + m[(2, 1)] * p[1] + m[(2, 2)] * p[2] + ctx.translation.z;
-        let inv_z = 1.0 / qz;
-        let u = cam.fx * qx * inv_z + cam.cx;
-        let v = cam.fy * qy * inv_z + cam.cy;
-        // NaN and points behind the camera fail too.
-        if !(qz > 0.0 && u >= 0.0 && v >= 0.0 && u < u_max && v < v_max) {
+        let Some(Bilinear {
+            q,
+            depth,
+            intensity,
+            nearest,
+        }) = ctx.associate_bilinear(&s.point)
+        else {
             continue;
-        }
-        // In range and non-negative here, so truncation is floor; via i32 because a float to
-        // usize conversion costs several times more on x86-64.
-        let (u0, v0) = (u as i32 as usize, v as i32 as usize);
-        let (fu, fv) = (u - u0 as f32, v - v0 as f32);
-        let i = v0 * w + u0;
-        let (Some(top), Some(bottom)) = (t.get(i..i + 2), t.get(i + w..i + w + 2)) else {
-            continue;
-        };
-        let (c00, c10, c01, c11) = (&top[0], &top[1], &bottom[0], &bottom[1]);
-        let near = |c: &TargetPixel| (c.depth - qz).abs() <= ctx.trunc;
-        if !(near(c00) && near(c10) && near(c01) && near(c11)) {
-            continue;
-        }
-        let nearest = match (fu >= 0.5, fv >= 0.5) {
-            (false, false) => c00,
-            (true, false) => c10,
-            (false, true) => c01,
-            (true, true) => c11,
         };
         // A depth slope next to a hole or across an edge is NaN.
         if !(nearest.depth_dx + nearest.depth_dy).is_finite() {
             continue;
         }
-        let (w00, w10, w01, w11) = (
-            (1.0 - fu) * (1.0 - fv),
-            fu * (1.0 - fv),
-            (1.0 - fu) * fv,
-            fu * fv,
-        );
-        let depth = w00 * c00.depth + w10 * c10.depth + w01 * c01.depth + w11 * c11.depth;
-        let intensity =
-            w00 * c00.intensity + w10 * c10.intensity + w01 * c01.intensity + w11 * c11.intensity;
-        let q = [qx, qy, qz];
         // Both rows carry the √λ = √½ weight, folded into the slopes.
         let j_i = image_jacobian(
             SQRT_HALF * nearest.intensity_dx,
@@ -534,15 +528,15 @@ fn accumulate_hybrid(ctx: &Association<'_>, points: &[SourcePoint], step: &mut C
             cam.fy,
         );
         // The depth residual also moves with the point's own z: ∂q_z/∂ξ = (q_y, −q_x, 0, 0, 0, 1).
-        j_d[0] -= SQRT_HALF * qy;
-        j_d[1] += SQRT_HALF * qx;
+        j_d[0] -= SQRT_HALF * q[1];
+        j_d[1] += SQRT_HALF * q[0];
         j_d[5] -= SQRT_HALF;
         step.add(
             &j_i,
             SQRT_HALF * (intensity - s.intensity),
             ctx.intensity_huber,
         );
-        step.add(&j_d, SQRT_HALF * (depth - qz), ctx.depth_huber);
+        step.add(&j_d, SQRT_HALF * (depth - q[2]), ctx.depth_huber);
         step.inliers += 1;
     }
 }
@@ -551,11 +545,12 @@ fn accumulate_intensity(ctx: &Association<'_>, points: &[SourcePoint], step: &mu
     let cam = ctx.target.camera;
     let huber = ctx.intensity_huber / SQRT_HALF;
     for s in points {
-        let Some((q, t)) = ctx.associate_bilinear(&s.point) else {
+        let Some(sample) = ctx.associate_bilinear(&s.point) else {
             continue;
         };
-        let j = image_jacobian(t.intensity_dx, t.intensity_dy, &q, cam.fx, cam.fy);
-        step.add(&j, t.intensity - s.intensity, huber);
+        let n = sample.nearest;
+        let j = image_jacobian(n.intensity_dx, n.intensity_dy, &sample.q, cam.fx, cam.fy);
+        step.add(&j, sample.intensity - s.intensity, huber);
         step.inliers += 1;
     }
 }
