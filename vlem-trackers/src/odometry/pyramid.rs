@@ -396,12 +396,6 @@ impl RowPasses {
 const GAUSS5: [f32; 5] = [1.0 / 16.0, 4.0 / 16.0, 6.0 / 16.0, 4.0 / 16.0, 1.0 / 16.0];
 
 /// Gaussian blur + every second pixel, borders clamped.
-pub fn pyr_down(image: &[f32], width: usize, height: usize) -> Vec<f32> {
-    let mut out = Vec::new();
-    pyr_down_into(image, width, height, &mut out);
-    out
-}
-
 fn pyr_down_into(image: &[f32], width: usize, height: usize, out: &mut Vec<f32>) {
     let (w2, h2) = (width / 2, height / 2);
     out.clear();
@@ -426,12 +420,6 @@ fn pyr_down_into(image: &[f32], width: usize, height: usize, out: &mut Vec<f32>)
 
 /// Gaussian downsampling of depth that ignores invalid neighbours and neighbours further than
 /// `max_diff` from the centre; an invalid centre stays invalid.
-pub fn pyr_down_depth(depth: &[f32], width: usize, height: usize, max_diff: f32) -> Vec<f32> {
-    let mut out = Vec::new();
-    pyr_down_depth_into(depth, width, height, max_diff, &mut out);
-    out
-}
-
 fn pyr_down_depth_into(
     depth: &[f32],
     width: usize,
@@ -506,30 +494,6 @@ fn weighted_neighbourhood(
     sum / weight
 }
 
-/// 3×3 Sobel derivatives scaled by 1/8 (so they are per-pixel slopes); NaN inputs make the
-/// neighbouring derivatives NaN, borders are clamped.
-pub fn sobel(image: &[f32], width: usize, height: usize) -> (Vec<f32>, Vec<f32>) {
-    let mut dx = vec![0.0; width * height];
-    let mut dy = vec![0.0; width * height];
-    dx.par_chunks_mut(width.max(1))
-        .zip(dy.par_chunks_mut(width.max(1)))
-        .enumerate()
-        .for_each(|(y, (row_dx, row_dy))| {
-            let up = &image[y.saturating_sub(1) * width..][..width];
-            let mid = &image[y * width..][..width];
-            let down = &image[(y + 1).min(height - 1) * width..][..width];
-            for x in 0..width {
-                let l = x.saturating_sub(1);
-                let r = (x + 1).min(width - 1);
-                let gx = (up[r] - up[l]) + 2.0 * (mid[r] - mid[l]) + (down[r] - down[l]);
-                let gy = (down[l] - up[l]) + 2.0 * (down[x] - up[x]) + (down[r] - up[r]);
-                row_dx[x] = gx * 0.125;
-                row_dy[x] = gy * 0.125;
-            }
-        });
-    (dx, dy)
-}
-
 /// Normals from the cross product of the right and down neighbours' 3D points, oriented
 /// towards the camera.
 fn normal_map_into(
@@ -585,6 +549,30 @@ fn normal_map_into(
 mod tests {
     use super::*;
 
+    /// Reference 3×3 Sobel derivatives scaled by 1/8 (so they are per-pixel slopes); NaN inputs make the
+    /// neighbouring derivatives NaN, borders are clamped.
+    fn sobel(image: &[f32], width: usize, height: usize) -> (Vec<f32>, Vec<f32>) {
+        let mut dx = vec![0.0; width * height];
+        let mut dy = vec![0.0; width * height];
+        dx.par_chunks_mut(width.max(1))
+            .zip(dy.par_chunks_mut(width.max(1)))
+            .enumerate()
+            .for_each(|(y, (row_dx, row_dy))| {
+                let up = &image[y.saturating_sub(1) * width..][..width];
+                let mid = &image[y * width..][..width];
+                let down = &image[(y + 1).min(height - 1) * width..][..width];
+                for x in 0..width {
+                    let l = x.saturating_sub(1);
+                    let r = (x + 1).min(width - 1);
+                    let gx = (up[r] - up[l]) + 2.0 * (mid[r] - mid[l]) + (down[r] - down[l]);
+                    let gy = (down[l] - up[l]) + 2.0 * (down[x] - up[x]) + (down[r] - up[r]);
+                    row_dx[x] = gx * 0.125;
+                    row_dy[x] = gy * 0.125;
+                }
+            });
+        (dx, dy)
+    }
+
     #[test]
     fn sobel_of_a_ramp_is_its_slope() {
         let (w, h) = (6, 5);
@@ -625,7 +613,8 @@ mod tests {
     #[test]
     fn pyr_down_keeps_a_constant_and_halves_the_size() {
         let image = vec![0.25; 8 * 6];
-        let down = pyr_down(&image, 8, 6);
+        let mut down = Vec::new();
+        pyr_down_into(&image, 8, 6, &mut down);
         assert_eq!(down.len(), 4 * 3);
         assert!(down.iter().all(|v| (v - 0.25).abs() < 1e-6));
     }
@@ -636,10 +625,11 @@ mod tests {
         let mut depth = vec![1.0; w * h];
         depth[2 * w + 3] = f32::NAN; // invalid neighbour of output (1, 1)
         depth[3 * w + 2] = 5.0; // far neighbour
-        let down = pyr_down_depth(&depth, w, h, 0.14);
+        let mut down = Vec::new();
+        pyr_down_depth_into(&depth, w, h, 0.14, &mut down);
         assert!((down[4 + 1] - 1.0).abs() < 1e-6, "{}", down[5]);
         depth[2 * w + 2] = f32::NAN; // the centre of output (1, 1)
-        let down = pyr_down_depth(&depth, w, h, 0.14);
+        pyr_down_depth_into(&depth, w, h, 0.14, &mut down);
         assert!(down[4 + 1].is_nan());
     }
 
