@@ -7,40 +7,11 @@
     reason = "tests"
 )]
 
-use std::path::{Path, PathBuf};
-use std::process::{Command, Output};
+mod common;
 
-fn repo() -> PathBuf {
-    PathBuf::from(env!("CARGO_MANIFEST_DIR"))
-}
+use common::{fails, ok, repo};
 
-fn vlem(args: &[&str]) -> Output {
-    Command::new(env!("CARGO_BIN_EXE_vlem"))
-        .args(args)
-        .current_dir(repo())
-        .output()
-        .expect("the vlem binary runs")
-}
-
-fn ok(args: &[&str]) -> String {
-    let out = vlem(args);
-    assert!(
-        out.status.success(),
-        "vlem {args:?} failed:\n{}{}",
-        String::from_utf8_lossy(&out.stdout),
-        String::from_utf8_lossy(&out.stderr)
-    );
-    String::from_utf8_lossy(&out.stdout).into_owned()
-}
-
-fn fails(args: &[&str]) -> String {
-    let out = vlem(args);
-    assert!(
-        !out.status.success(),
-        "vlem {args:?} succeeded but should fail"
-    );
-    String::from_utf8_lossy(&out.stderr).into_owned()
-}
+use std::path::Path;
 
 fn write_config(dir: &Path, text: &str) -> String {
     let path = dir.join("test.toml");

@@ -7,27 +7,18 @@
     reason = "tests"
 )]
 
+mod common;
+
+use common::{fails, repo, vlem};
+
 use std::path::{Path, PathBuf};
-use std::process::{Command, Output};
 
 use nalgebra::{UnitQuaternion, Vector3};
 use vlem_core::Pose;
 use vlem_datasets::trajectory::{read_log, write_tum};
 
-fn repo() -> PathBuf {
-    PathBuf::from(env!("CARGO_MANIFEST_DIR"))
-}
-
 fn reference_log() -> PathBuf {
     repo().join("data/living-room/trajectory.log")
-}
-
-fn vlem(args: &[&str]) -> Output {
-    Command::new(env!("CARGO_BIN_EXE_vlem"))
-        .args(args)
-        .current_dir(repo())
-        .output()
-        .expect("the vlem binary runs")
 }
 
 fn s(path: &Path) -> &str {
@@ -58,16 +49,6 @@ fn eval(estimate: &Path, reference: &Path, extra: &[&str]) -> (String, serde_jso
     );
     let report = serde_json::from_str(&std::fs::read_to_string(&json).unwrap()).unwrap();
     (stdout, report)
-}
-
-fn fails(args: &[&str]) -> String {
-    let out = vlem(args);
-    assert!(
-        !out.status.success(),
-        "vlem {args:?} succeeded but should fail:\n{}",
-        String::from_utf8_lossy(&out.stdout)
-    );
-    String::from_utf8_lossy(&out.stderr).into_owned()
 }
 
 fn num(report: &serde_json::Value, pointer: &str) -> f64 {
