@@ -24,4 +24,6 @@ pub use traits::frame_source::FrameSource;
 pub use traits::region_proposer::RegionProposer;
 pub use traits::segmenter::{PointSet, QueryScores, Segmenter};
 pub use traits::tracker::{TrackedPose, Tracker, TrackingState};
-pub use types::{ColouredMesh, DepthImage, Frame, Intrinsics, PixelRect, Pose, Region, RgbImage};
+pub use types::{
+    ColouredMesh, DepthImage, Frame, Intrinsics, PixelRect, Pose, Region, RgbImage, RigidF32,
+};

@@ -379,6 +379,66 @@ impl Region {
     }
 }
 
+/// A rigid transform in `f32` for per-pixel hot loops (poses are `f64` everywhere else): the
+/// rotation as rows and the translation, so `apply` is `R p + t`.
+#[derive(Clone, Copy, Debug, PartialEq)]
+pub struct RigidF32 {
+    /// Row-major rotation.
+    pub rotation: [[f32; 3]; 3],
+    /// Translation.
+    pub translation: [f32; 3],
+}
+
+impl RigidF32 {
+    /// The transform of `pose`, rounded to `f32`.
+    pub fn from_pose(pose: &Pose) -> Self {
+        let m = pose.rotation.to_rotation_matrix();
+        let m = m.matrix();
+        let t = pose.translation.vector;
+        Self {
+            rotation: [0, 1, 2].map(|i| [0, 1, 2].map(|j| m[(i, j)] as f32)),
+            translation: [t.x as f32, t.y as f32, t.z as f32],
+        }
+    }
+
+    /// `R v`.
+    #[inline(always)]
+    pub fn rotate(&self, v: [f32; 3]) -> [f32; 3] {
+        let r = &self.rotation;
+        [
+            r[0][0] * v[0] + r[0][1] * v[1] + r[0][2] * v[2],
+            r[1][0] * v[0] + r[1][1] * v[1] + r[1][2] * v[2],
+            r[2][0] * v[0] + r[2][1] * v[1] + r[2][2] * v[2],
+        ]
+    }
+
+    /// `R p + t`.
+    #[inline(always)]
+    pub fn apply(&self, p: [f32; 3]) -> [f32; 3] {
+        let q = self.rotate(p);
+        let t = &self.translation;
+        [q[0] + t[0], q[1] + t[1], q[2] + t[2]]
+    }
+
+    /// `Rᵀ v`.
+    #[inline(always)]
+    pub fn inverse_rotate(&self, v: [f32; 3]) -> [f32; 3] {
+        let r = &self.rotation;
+        [
+            r[0][0] * v[0] + r[1][0] * v[1] + r[2][0] * v[2],
+            r[0][1] * v[0] + r[1][1] * v[1] + r[2][1] * v[2],
+            r[0][2] * v[0] + r[1][2] * v[1] + r[2][2] * v[2],
+        ]
+    }
+
+    /// `Rᵀ (p − t)`: world to camera when the transform is camera-to-world.
+    #[inline(always)]
+    pub fn inverse_apply(&self, p: [f32; 3]) -> [f32; 3] {
+        let t = &self.translation;
+        self.inverse_rotate([p[0] - t[0], p[1] - t[1], p[2] - t[2]])
+    }
+}
+
 /// A triangle mesh with one colour per vertex: the dense colour model a tracker can export
 /// (e.g. marching cubes on its TSDF), shown beside the embedding map.
 #[derive(Clone, Debug, Default, PartialEq)]
@@ -439,6 +499,25 @@ mod tests {
         assert_eq!(d.get(3, 0), Some(1.5));
         assert_eq!(d.valid_count(), 1);
         assert!(DepthImage::new(4, 2, vec![0.0; 7]).is_err());
+    }
+
+    #[test]
+    fn rigid_f32_matches_the_f64_pose_and_inverts() {
+        let pose = Pose::new(Vector3::new(0.5, -1.0, 2.0), Vector3::new(0.1, -0.4, 0.3));
+        let rigid = RigidF32::from_pose(&pose);
+        let p = [0.3_f32, -0.7, 1.9];
+        let q = rigid.apply(p);
+        let expected = pose * Point3::new(0.3, -0.7, 1.9);
+        for a in 0..3 {
+            assert!(
+                (f64::from(q[a]) - expected[a]).abs() < 1e-5,
+                "{q:?} vs {expected}"
+            );
+        }
+        let back = rigid.inverse_apply(q);
+        for a in 0..3 {
+            assert!((back[a] - p[a]).abs() < 1e-5, "{back:?}");
+        }
     }
 
     #[test]

@@ -1,33 +1,9 @@
 //! Pieces every map shares: validating an observation, resolving the embedding dimension,
-//! parameter errors, and the f32 rigid transform of the per-pixel loops.
+//! and parameter errors.
 
-use nalgebra::{Matrix3, Vector3};
 use vlem_core::{CoreError, MapSnapshot, Observation, StageKind};
 
 use crate::error::MapError;
-
-/// An f32 rigid transform for the hot loops (poses are f64 elsewhere).
-#[derive(Clone, Copy, Debug)]
-pub(crate) struct Rigid {
-    r: Matrix3<f32>,
-    t: Vector3<f32>,
-}
-
-impl Rigid {
-    pub(crate) fn from_pose(pose: &vlem_core::Pose) -> Self {
-        let m = pose.to_homogeneous().cast::<f32>();
-        Self {
-            r: m.fixed_view::<3, 3>(0, 0).into_owned(),
-            t: m.fixed_view::<3, 1>(0, 3).into_owned(),
-        }
-    }
-
-    #[inline]
-    pub(crate) fn apply(&self, p: [f32; 3]) -> [f32; 3] {
-        let q = self.r * Vector3::from(p) + self.t;
-        [q.x, q.y, q.z]
-    }
-}
 
 /// The error for a map parameter out of its range, named for the pipeline.
 pub(crate) fn invalid_parameter(map: &str, name: &'static str, reason: &str) -> CoreError {

@@ -20,10 +20,10 @@ use serde::Deserialize;
 use vlem_core::embeddings::normalise;
 use vlem_core::{
     BuildContext, CoreError, EmbeddingMap, IntegrationStats, MapMetadata, MapSnapshot, Observation,
-    PixelEmbeddings, StageKind, parse_params,
+    PixelEmbeddings, RigidF32, StageKind, parse_params,
 };
 
-use crate::common::{Rigid, check_observation, check_snapshot, invalid_parameter, resolve_dim};
+use crate::common::{check_observation, check_snapshot, invalid_parameter, resolve_dim};
 use crate::error::MapError;
 use crate::storage::{EmbeddingStore, Precision, fuse_into};
 
@@ -190,7 +190,7 @@ impl PointCloudMap {
         let frame = obs.frame;
         let k = &frame.intrinsics;
         let (w, h) = (frame.depth.width(), frame.depth.height());
-        let to_map = Rigid::from_pose(obs.pose);
+        let to_map = RigidF32::from_pose(obs.pose);
         let (fx, fy, cx, cy) = (k.fx as f32, k.fy as f32, k.cx as f32, k.cy as f32);
         let max_depth = self.config.max_depth;
         let depth = frame.depth.as_raw();
@@ -237,7 +237,7 @@ impl PointCloudMap {
             Err(_) => return vec![u32::MAX; self.positions.len()],
         };
         let k = &obs.frame.intrinsics;
-        let to_camera = Rigid::from_pose(&obs.pose.inverse());
+        let to_camera = RigidF32::from_pose(&obs.pose.inverse());
         let (fx, fy, cx, cy) = (k.fx as f32, k.fy as f32, k.cx as f32, k.cy as f32);
         let (w, h) = (k.width as f32, k.height as f32);
         let r2 = self.config.max_distance * self.config.max_distance;

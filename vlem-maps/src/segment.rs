@@ -37,10 +37,10 @@ use serde::Deserialize;
 use vlem_core::embeddings::{EmbeddingLayout, normalise};
 use vlem_core::{
     BuildContext, CoreError, EmbeddingMap, IntegrationStats, MapMetadata, MapSnapshot, Observation,
-    PixelEmbeddings, StageKind, parse_params,
+    PixelEmbeddings, RigidF32, StageKind, parse_params,
 };
 
-use crate::common::{Rigid, check_observation, check_snapshot, invalid_parameter, resolve_dim};
+use crate::common::{check_observation, check_snapshot, invalid_parameter, resolve_dim};
 use crate::error::MapError;
 use crate::storage::{EmbeddingStore, Precision, fuse_into};
 
@@ -279,7 +279,7 @@ impl SegmentMap {
         let frame = obs.frame;
         let k = &frame.intrinsics;
         let (w, h) = (frame.depth.width(), frame.depth.height());
-        let to_map = Rigid::from_pose(obs.pose);
+        let to_map = RigidF32::from_pose(obs.pose);
         let (fx, fy, cx, cy) = (k.fx as f32, k.fy as f32, k.cx as f32, k.cy as f32);
         let depth = frame.depth.as_raw();
         let dim = self.dim;

@@ -30,10 +30,10 @@ use serde::Deserialize;
 use vlem_core::embeddings::normalise;
 use vlem_core::{
     BuildContext, CoreError, EmbeddingMap, IntegrationStats, MapMetadata, MapSnapshot, Observation,
-    PixelEmbeddings, RgbImage, StageKind, parse_params,
+    PixelEmbeddings, RgbImage, RigidF32, StageKind, parse_params,
 };
 
-use crate::common::{Rigid, check_observation, check_snapshot, invalid_parameter, resolve_dim};
+use crate::common::{check_observation, check_snapshot, invalid_parameter, resolve_dim};
 use crate::error::MapError;
 use crate::storage::{EmbeddingStore, Precision};
 
@@ -377,7 +377,7 @@ impl VoxelMap {
         let frame = obs.frame;
         let k = &frame.intrinsics;
         let (w, h) = (frame.depth.width() as usize, frame.depth.height() as usize);
-        let to_map = Rigid::from_pose(obs.pose);
+        let to_map = RigidF32::from_pose(obs.pose);
         let (fx, fy, cx, cy) = (k.fx as f32, k.fy as f32, k.cx as f32, k.cy as f32);
         let max_depth = self.config.max_depth;
         let inverse_size = 1.0 / self.config.voxel_size;

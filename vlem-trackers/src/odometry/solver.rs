@@ -20,9 +20,10 @@
 //! fitness and RMSE change by less than the relative thresholds (Open3D's convergence criteria),
 //! or when an update moves no point by more than `min_update` metres.
 
-use nalgebra::{Cholesky, Isometry3, Matrix3, Matrix6, Vector3, Vector6};
+use nalgebra::{Cholesky, Isometry3, Matrix6, Vector3, Vector6};
 use rayon::prelude::*;
 use serde::{Deserialize, Serialize};
+use vlem_core::RigidF32;
 
 use super::pyramid::{Level, Pyramid, SourcePoint, TargetPixel};
 
@@ -337,11 +338,8 @@ fn linearise(
     transform: &Isometry3<f64>,
     params: &SolveParams,
 ) -> Step {
-    let rotation: Matrix3<f32> = transform.rotation.to_rotation_matrix().matrix().cast();
-    let translation: Vector3<f32> = transform.translation.vector.cast();
     let ctx = Association {
-        rotation,
-        translation,
+        transform: RigidF32::from_pose(transform),
         target,
         trunc: params.depth_outlier_trunc,
         depth_huber: params.depth_huber_delta * SQRT_HALF,
@@ -365,8 +363,8 @@ fn linearise(
 }
 
 struct Association<'a> {
-    rotation: Matrix3<f32>,
-    translation: Vector3<f32>,
+    /// Source to target camera.
+    transform: RigidF32,
     target: &'a Level,
     trunc: f32,
     /// Huber thresholds on the λ-scaled residuals.
@@ -378,16 +376,16 @@ impl Association<'_> {
     /// The moved point and its continuous pixel coordinates in the target.
     #[inline]
     fn project(&self, p: &[f32; 3]) -> Option<([f32; 3], f32, f32)> {
-        let q = self.rotation * Vector3::new(p[0], p[1], p[2]) + self.translation;
-        if q.z <= 0.0 {
+        let q = self.transform.apply(*p);
+        if q[2] <= 0.0 {
             return None;
         }
         let cam = &self.target.camera;
-        let inv_z = 1.0 / q.z;
+        let inv_z = 1.0 / q[2];
         Some((
-            [q.x, q.y, q.z],
-            cam.fx * q.x * inv_z + cam.cx,
-            cam.fy * q.y * inv_z + cam.cy,
+            q,
+            cam.fx * q[0] * inv_z + cam.cx,
+            cam.fy * q[1] * inv_z + cam.cy,
         ))
     }
 
@@ -414,10 +412,7 @@ impl Association<'_> {
     /// solve half a pixel or more from the optimum. Interpolating keeps the two consistent.
     #[inline(always)]
     fn associate_bilinear(&self, p: &[f32; 3]) -> Option<Bilinear<'_>> {
-        let m = &self.rotation;
-        let qx = m[(0, 0)] * p[0] + m[(0, 1)] * p[1] + m[(0, 2)] * p[2] + self.translation.x;
-        let qy = m[(1, 0)] * p[0] + m[(1, 1)] * p[1] + m[(1, 2)] * p[2] + self.translation.y;
-        let qz = m[(2, 0)] * p[0] + m[(2, 1)] * p[1] + m[(2, 2)] * p[2] + self.translation.z;
+        let [qx, qy, qz] = self.transform.apply(*p);
         let cam = &self.target.camera;
         let inv_z = 1.0 / qz;
         let u = cam.fx * qx * inv_z + cam.cx;

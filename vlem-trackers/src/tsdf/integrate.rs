@@ -7,7 +7,8 @@ use vlem_core::{DepthImage, Intrinsics, Pose, RgbImage};
 use super::block::{
     BLOCK_RES, BLOCK_VOXELS, Block, COLOUR_SCALE, brick_index, march_value, voxel_index,
 };
-use super::{Camera32, Rigid32, TsdfVolume, floor_i32};
+use super::{Camera32, TsdfVolume, floor_i32};
+use vlem_core::RigidF32;
 
 /// A pixel as the update reads it: the depth (−∞ where it must not be fused) and colour side by
 /// side, so one cache line serves both.
@@ -20,7 +21,7 @@ struct Pixel {
 /// Everything the per-block update reads, in `f32`.
 struct FuseParams<'a> {
     camera: Camera32,
-    pose: Rigid32,
+    pose: RigidF32,
     pixels: &'a [Pixel],
     voxel_size: f32,
     trunc: f32,
@@ -56,7 +57,7 @@ impl TsdfVolume {
             .collect();
         let params = FuseParams {
             camera: Camera32::new(k),
-            pose: Rigid32::from_pose(camera_to_world),
+            pose: RigidF32::from_pose(camera_to_world),
             pixels: &pixels,
             voxel_size: self.config.voxel_size,
             trunc: self.config.sdf_trunc(),
@@ -101,7 +102,7 @@ impl TsdfVolume {
         let inv_block = 1.0 / block_size;
         // Half a voxel in block units.
         let half_voxel = 0.5 / BLOCK_RES as f32;
-        let origin = p.pose.t;
+        let origin = p.pose.translation;
         let pose = p.pose;
         let trunc = p.trunc;
         // Samples along the ray every half block.
@@ -197,7 +198,7 @@ fn image_order(block: &Block, p: &FuseParams<'_>) -> u32 {
     let centre = block
         .coord
         .map(|c| (c as f32 * BLOCK_RES as f32 + half) * p.voxel_size);
-    let c = p.pose.inverse_transform(centre);
+    let c = p.pose.inverse_apply(centre);
     if c[2] <= 1e-3 {
         return u32::MAX;
     }
@@ -219,7 +220,7 @@ fn update_block(block: &mut Block, p: &FuseParams<'_>) {
     let cam = &p.camera;
     let vs = p.voxel_size;
     let base = block.coord.map(|c| (c * BLOCK_RES as i32) as f32 * vs);
-    let origin = p.pose.inverse_transform(base);
+    let origin = p.pose.inverse_apply(base);
     let dx = p.pose.inverse_rotate([vs, 0.0, 0.0]);
     let dy = p.pose.inverse_rotate([0.0, vs, 0.0]);
     let dz = p.pose.inverse_rotate([0.0, 0.0, vs]);

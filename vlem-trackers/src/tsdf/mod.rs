@@ -173,61 +173,6 @@ impl TsdfConfig {
     }
 }
 
-/// A rigid transform in `f32` (rotation rows and translation) for the hot loops.
-#[derive(Clone, Copy, Debug)]
-pub(crate) struct Rigid32 {
-    /// Row-major rotation.
-    r: [[f32; 3]; 3],
-    /// Translation.
-    t: [f32; 3],
-}
-
-impl Rigid32 {
-    fn from_pose(pose: &Pose) -> Self {
-        let m = pose.rotation.to_rotation_matrix();
-        let m = m.matrix();
-        let mut r = [[0.0_f32; 3]; 3];
-        for (i, row) in r.iter_mut().enumerate() {
-            for (j, x) in row.iter_mut().enumerate() {
-                *x = m[(i, j)] as f32;
-            }
-        }
-        let t = pose.translation.vector;
-        Self {
-            r,
-            t: [t.x as f32, t.y as f32, t.z as f32],
-        }
-    }
-
-    /// `R v`.
-    #[inline]
-    fn rotate(&self, v: [f32; 3]) -> [f32; 3] {
-        let r = &self.r;
-        [
-            r[0][0] * v[0] + r[0][1] * v[1] + r[0][2] * v[2],
-            r[1][0] * v[0] + r[1][1] * v[1] + r[1][2] * v[2],
-            r[2][0] * v[0] + r[2][1] * v[1] + r[2][2] * v[2],
-        ]
-    }
-
-    /// `R^T v`.
-    #[inline]
-    fn inverse_rotate(&self, v: [f32; 3]) -> [f32; 3] {
-        let r = &self.r;
-        [
-            r[0][0] * v[0] + r[1][0] * v[1] + r[2][0] * v[2],
-            r[0][1] * v[0] + r[1][1] * v[1] + r[2][1] * v[2],
-            r[0][2] * v[0] + r[1][2] * v[1] + r[2][2] * v[2],
-        ]
-    }
-
-    /// `R^T (p - t)`: world to camera when the transform is camera-to-world.
-    #[inline]
-    fn inverse_transform(&self, p: [f32; 3]) -> [f32; 3] {
-        self.inverse_rotate([p[0] - self.t[0], p[1] - self.t[1], p[2] - self.t[2]])
-    }
-}
-
 /// Pinhole intrinsics in `f32`.
 #[derive(Clone, Copy, Debug)]
 pub(crate) struct Camera32 {

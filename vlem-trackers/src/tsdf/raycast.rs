@@ -31,7 +31,8 @@ use super::block::{
     MARCH_UNALLOCATED, MARCH_UNOBSERVED, UNALLOCATED_BLOCK, UNOBSERVED, block_of, brick_index,
     local_index, unobserved, voxel_index,
 };
-use super::{Camera32, Rigid32, TsdfVolume, floor_i32};
+use super::{Camera32, TsdfVolume, floor_i32};
+use vlem_core::RigidF32;
 
 /// Pixels per range-map tile edge.
 const TILE: usize = 8;
@@ -157,7 +158,7 @@ impl RangeMap {
         // Cull blocks wholly behind the camera or beyond the far plane by their bounding sphere.
         let half = 0.5 * BLOCK_RES as f32 * vs;
         let centre = block.coord.map(|c| c as f32 * BLOCK_RES as f32 * vs + half);
-        let z_centre = ctx.pose.inverse_transform(centre)[2];
+        let z_centre = ctx.pose.inverse_apply(centre)[2];
         let radius = ctx.block_radius;
         if z_centre + radius < ctx.z_near || z_centre - radius > ctx.z_far {
             return;
@@ -175,7 +176,7 @@ impl RangeMap {
                     lo[axis]
                 }
             };
-            *corner = ctx.pose.inverse_transform([pick(0), pick(1), pick(2)]);
+            *corner = ctx.pose.inverse_apply([pick(0), pick(1), pick(2)]);
         }
         let near = ctx.z_near;
         // The box clipped to z >= near: corners in front, and edge crossings of the near plane.
@@ -361,7 +362,7 @@ impl<'a> Lookup<'a> {
 /// Everything a ray reads, in `f32`.
 struct CastContext {
     camera: Camera32,
-    pose: Rigid32,
+    pose: RigidF32,
     /// Camera centre in voxel units.
     origin: [f32; 3],
     /// The camera centre's voxel, and the centre relative to it plus `0.5 + bias` (see
@@ -841,7 +842,7 @@ impl TsdfVolume {
             && self.in_range(camera_to_world)
             && !self.blocks.is_empty()
         {
-            let pose = Rigid32::from_pose(camera_to_world);
+            let pose = RigidF32::from_pose(camera_to_world);
             let inv_voxel_size = 1.0 / self.config.voxel_size;
             // The farthest a ray travels, in voxels: depth_max along the steepest ray (a corner
             // pixel's), plus a margin. Below 2^28 by `in_range` for sane cameras; clamped so the
@@ -854,14 +855,15 @@ impl TsdfVolume {
             let longest = (tan_x * tan_x + tan_y * tan_y + 1.0).sqrt();
             let reach = (longest * self.config.depth_max * inv_voxel_size + 64.0).min(1e9);
             let bias = (reach as u32).next_power_of_two().min(1 << 30) as i32;
-            let origin_voxel = pose.t.map(|x| floor_i32(x * inv_voxel_size));
-            let origin_biased = [0, 1, 2]
-                .map(|a| pose.t[a] * inv_voxel_size - origin_voxel[a] as f32 + 0.5 + bias as f32);
+            let origin_voxel = pose.translation.map(|x| floor_i32(x * inv_voxel_size));
+            let origin_biased = [0, 1, 2].map(|a| {
+                pose.translation[a] * inv_voxel_size - origin_voxel[a] as f32 + 0.5 + bias as f32
+            });
             let frames = u16::try_from(self.frames.min(3)).unwrap_or(3);
             let ctx = CastContext {
                 camera,
                 pose,
-                origin: pose.t.map(|x| x * inv_voxel_size),
+                origin: pose.translation.map(|x| x * inv_voxel_size),
                 origin_voxel,
                 origin_biased,
                 bias,
