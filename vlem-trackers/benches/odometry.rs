@@ -45,13 +45,7 @@ fn main() {
         let t = Instant::now();
         let mut iterations = 0;
         for pair in pyramids.windows(2) {
-            let r = register(
-                &pair[1],
-                &pair[0],
-                &Isometry3::identity(),
-                &config.solve_params(),
-            )
-            .unwrap();
+            let r = register(&pair[1], &pair[0], &Isometry3::identity(), &config).unwrap();
             iterations += r.iterations;
         }
         let solve = t.elapsed().as_secs_f64() * 1e3 / (frames.len() - 1) as f64;

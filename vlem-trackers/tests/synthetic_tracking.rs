@@ -48,7 +48,7 @@ fn odometry_converges_from_a_5cm_5deg_offset_between_two_frames() {
             UnitQuaternion::from_axis_angle(&axis, sign * 5f64.to_radians()),
         );
         assert!((offset.translation.vector.norm() - 0.05).abs() < 1e-3);
-        let found = register(&source, &target, &(offset * truth), &config.solve_params()).unwrap();
+        let found = register(&source, &target, &(offset * truth), &config).unwrap();
         let error = truth.inverse() * found.source_to_target;
         let (t, r) = (
             error.translation.vector.norm(),

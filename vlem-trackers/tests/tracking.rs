@@ -50,7 +50,7 @@ fn every_method_converges_from_a_5cm_5deg_offset_on_a_real_frame() {
             ..OdometryConfig::default()
         };
         let p = pyramid(&frame, &config);
-        let found = register(&p, &p, &offset, &config.solve_params()).unwrap();
+        let found = register(&p, &p, &offset, &config).unwrap();
         let (t, r) = motion_error(&Isometry3::identity(), &found.source_to_target);
         assert!(t < 1e-4 && r < 0.01, "{method:?}: residual {t} m, {r} deg");
         assert!(found.fitness > 0.9, "{}", found.fitness);

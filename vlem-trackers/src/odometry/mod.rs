@@ -30,7 +30,7 @@ use vlem_core::{
 };
 
 pub use pyramid::{Pyramid, PyramidParams};
-pub use solver::{Method, Registration, SolveFailure, SolveParams, register};
+pub use solver::{Method, Registration, SolveFailure, register};
 
 use crate::error::TrackerError;
 
@@ -159,20 +159,6 @@ impl OdometryConfig {
         }
     }
 
-    /// The solver's share of the parameters.
-    pub fn solve_params(&self) -> SolveParams {
-        SolveParams {
-            method: self.method,
-            iterations: self.iterations.clone(),
-            depth_outlier_trunc: self.depth_outlier_trunc,
-            depth_huber_delta: self.depth_huber_delta,
-            intensity_huber_delta: self.intensity_huber_delta,
-            relative_rmse: self.relative_rmse,
-            relative_fitness: self.relative_fitness,
-            min_update: self.min_update,
-        }
-    }
-
     /// Why a frame cannot be tracked before registering it, if it cannot.
     pub fn check_frame(&self, frame: &Frame, pyramid: &Pyramid) -> Option<String> {
         let pixels = frame.intrinsics.width as f64 * frame.intrinsics.height as f64;
@@ -195,7 +181,7 @@ impl OdometryConfig {
         target: &Pyramid,
         init: &Isometry3<f64>,
     ) -> Result<Registration, String> {
-        let registration = register(source, target, init, &self.solve_params())
+        let registration = register(source, target, init, self)
             .map_err(|failure| format!("registration failed: {failure}"))?;
         let motion = &registration.source_to_target;
         let translation = motion.translation.vector.norm();

@@ -25,6 +25,7 @@ use rayon::prelude::*;
 use serde::{Deserialize, Serialize};
 use vlem_core::RigidF32;
 
+use super::OdometryConfig;
 use super::pyramid::{Level, Pyramid, SourcePoint, TargetPixel};
 
 /// Which residuals the solver minimises.
@@ -38,28 +39,6 @@ pub enum Method {
     PointToPlane,
     /// Photometric residual only (Steinbrücker et al. 2011).
     Intensity,
-}
-
-/// Solver parameters (Open3D's `OdometryLossParams` and convergence criteria).
-#[derive(Clone, Debug, PartialEq)]
-pub struct SolveParams {
-    /// Residual terms.
-    pub method: Method,
-    /// Gauss–Newton iterations per level, coarsest level first.
-    pub iterations: Vec<usize>,
-    /// Depth difference (metres) beyond which an association is an outlier.
-    pub depth_outlier_trunc: f32,
-    /// Huber threshold of geometric residuals (metres).
-    pub depth_huber_delta: f32,
-    /// Huber threshold of photometric residuals (intensity in `[0, 1]`).
-    pub intensity_huber_delta: f32,
-    /// A level stops when the inlier RMSE changes by less than this fraction...
-    pub relative_rmse: f64,
-    /// ...and the inlier fitness by less than this fraction.
-    pub relative_fitness: f64,
-    /// A level also stops when an update moves no point by more than this many metres
-    /// (0 runs every iteration, as Open3D does).
-    pub min_update: f64,
 }
 
 /// What [`register`] found.
@@ -126,7 +105,7 @@ pub fn register(
     source: &Pyramid,
     target: &Pyramid,
     init: &Isometry3<f64>,
-    params: &SolveParams,
+    params: &OdometryConfig,
 ) -> Result<Registration, SolveFailure> {
     let levels = source.levels.len().min(target.levels.len());
     let mut transform = *init;
@@ -336,7 +315,7 @@ fn linearise(
     source: &Level,
     target: &Level,
     transform: &Isometry3<f64>,
-    params: &SolveParams,
+    params: &OdometryConfig,
 ) -> Step {
     let ctx = Association {
         transform: RigidF32::from_pose(transform),
