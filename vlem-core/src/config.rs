@@ -24,6 +24,7 @@
 //! ```
 
 use std::path::{Path, PathBuf};
+use std::time::Duration;
 
 use serde::{Deserialize, Serialize};
 
@@ -274,6 +275,45 @@ pub struct PipelineConfig {
 
 fn default_queue() -> usize {
     2
+}
+
+impl PipelineConfig {
+    /// Checks the values a run cannot use, without building anything: `queue_capacity` must be at
+    /// least 1 and, in real-time mode, `frame_rate` a positive finite rate whose period (1 /
+    /// `frame_rate`) a [`Duration`] can hold.
+    ///
+    /// # Errors
+    /// [`CoreError::MissingStage`] naming the key and the value.
+    pub fn validate(&self) -> Result<()> {
+        if self.queue_capacity == 0 {
+            return Err(CoreError::MissingStage {
+                message: "[pipeline] queue_capacity must be at least 1".into(),
+            });
+        }
+        let rate = self.frame_rate;
+        let representable =
+            rate.is_finite() && rate > 0.0 && Duration::try_from_secs_f64(1.0 / rate).is_ok();
+        if self.mode == Mode::RealTime && !representable {
+            return Err(CoreError::MissingStage {
+                message: format!(
+                    "[pipeline] frame_rate must be a positive number of frames per second in \
+                     real-time mode, got {rate:?}"
+                ),
+            });
+        }
+        Ok(())
+    }
+
+    /// The time between two frames in real-time mode, 1 / `frame_rate`; zero (no pacing) for a
+    /// rate that is not positive, and the longest [`Duration`] for one too small for it to hold
+    /// (which [`PipelineConfig::validate`] refuses in real-time mode).
+    pub fn frame_period(&self) -> Duration {
+        if self.frame_rate > 0.0 {
+            Duration::try_from_secs_f64(1.0 / self.frame_rate).unwrap_or(Duration::MAX)
+        } else {
+            Duration::ZERO
+        }
+    }
 }
 
 fn default_frame_rate() -> f64 {

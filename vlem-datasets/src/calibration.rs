@@ -46,17 +46,25 @@ struct Open3dIntrinsics {
 /// 3x3 `intrinsic_matrix`), as ICL-NUIM and Redwood folders carry it.
 ///
 /// # Errors
-/// [`DatasetError::MissingFile`] / [`DatasetError::Io`] when the file cannot be read,
+/// [`DatasetError::MissingFile`] / [`DatasetError::Io`] when the file cannot be read, and those of
+/// [`open3d_intrinsics_from_str`].
+pub fn read_open3d_intrinsics(path: &Path) -> Result<Intrinsics> {
+    open3d_intrinsics_from_str(&read_text(path)?, path)
+}
+
+/// Parses the text of an Open3D `PinholeCameraIntrinsic` JSON file (see
+/// [`read_open3d_intrinsics`]); `origin` is the file it came from, as errors name it.
+///
+/// # Errors
 /// [`DatasetError::Parse`] for invalid JSON or a matrix without 9 numbers, and
 /// [`DatasetError::Core`] for intrinsics that fail validation.
-pub fn read_open3d_intrinsics(path: &Path) -> Result<Intrinsics> {
-    let text = read_text(path)?;
-    let json: Open3dIntrinsics = serde_json::from_str(&text)
-        .map_err(|e| DatasetError::parse(path, e.line(), e.to_string()))?;
+pub fn open3d_intrinsics_from_str(text: &str, origin: &Path) -> Result<Intrinsics> {
+    let json: Open3dIntrinsics = serde_json::from_str(text)
+        .map_err(|e| DatasetError::parse(origin, e.line(), e.to_string()))?;
     let m = &json.intrinsic_matrix;
     if m.len() != 9 {
         return Err(DatasetError::parse(
-            path,
+            origin,
             1,
             format!(
                 "`intrinsic_matrix` must hold 9 numbers (a column-major 3x3 matrix), found {}",
@@ -66,7 +74,7 @@ pub fn read_open3d_intrinsics(path: &Path) -> Result<Intrinsics> {
     }
     validated(
         Intrinsics::new(json.width, json.height, m[0], m[4], m[6], m[7]),
-        path,
+        origin,
     )
 }
 

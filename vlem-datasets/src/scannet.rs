@@ -26,7 +26,8 @@ use crate::sequence::{
     Camera, ColourFit, Entry, PoseRef, Selection, Sequence, depth_scale, list_files,
     reader_via_sequence, require_file,
 };
-use crate::trajectory::{pose_from_matrix, read_matrix_rows};
+use crate::text::read_text;
+use crate::trajectory::{matrix_rows_from_str, pose_from_matrix};
 
 /// Raw depth units per metre of ScanNet (millimetres).
 pub const SCANNET_DEPTH_SCALE: f64 = 1000.0;
@@ -128,7 +129,23 @@ fn read_depth_intrinsics(path: &Path, width: u32, height: u32) -> Result<Intrins
         "a ScanNet export needs intrinsic/intrinsic_depth.txt (the depth camera's 4x4 matrix)"
             .to_owned()
     })?;
-    let k = read_matrix_rows(path, 4)?;
+    depth_intrinsics_from_str(&read_text(path)?, width, height, path)
+}
+
+/// Parses the text of a ScanNet `intrinsic_depth.txt` (a 4x4 matrix, one row per line, whose
+/// top-left 3x3 block is K) as the camera of depth images of `width` x `height`; `path` is the
+/// file it came from, as errors name it.
+///
+/// # Errors
+/// [`DatasetError::Parse`] for a malformed matrix, [`DatasetError::Core`] for intrinsics that fail
+/// validation.
+pub fn depth_intrinsics_from_str(
+    text: &str,
+    width: u32,
+    height: u32,
+    path: &Path,
+) -> Result<Intrinsics> {
+    let k = matrix_rows_from_str(text, path, 4)?;
     validated(
         Intrinsics::new(width, height, k[0][0], k[1][1], k[0][2], k[1][2]),
         path,
@@ -137,7 +154,18 @@ fn read_depth_intrinsics(path: &Path, width: u32, height: u32) -> Result<Intrins
 
 /// Reads one ScanNet pose file (4x4 camera-to-world, rows) for frame `frame`.
 pub(crate) fn read_pose(path: &Path, frame: usize) -> Result<Pose> {
-    let rows = read_matrix_rows(path, 4)?;
+    pose_from_str(&read_text(path)?, path, frame)
+}
+
+/// Parses the text of one ScanNet pose file (`pose/N.txt`: a 4x4 camera-to-world matrix, one row
+/// per line) as the pose of frame `frame`; `path` is the file it came from, as errors name it.
+///
+/// # Errors
+/// [`DatasetError::Parse`] for a malformed matrix, [`DatasetError::NonFinitePose`] for the `-inf`
+/// poses ScanNet writes for lost frames, [`DatasetError::NotRotation`] for a matrix whose rotation
+/// block is not a rotation.
+pub fn pose_from_str(text: &str, path: &Path, frame: usize) -> Result<Pose> {
+    let rows = matrix_rows_from_str(text, path, 4)?;
     let values: Vec<f64> = rows.into_iter().flatten().collect();
     pose_from_matrix(&Matrix4::from_row_slice(&values), path, frame)
 }

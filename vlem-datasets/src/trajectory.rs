@@ -28,13 +28,21 @@ pub const QUATERNION_NORM_TOLERANCE: f64 = 1e-2;
 /// Reads a Redwood `.log` trajectory: one camera-to-world pose per frame, in file order.
 ///
 /// # Errors
-/// [`DatasetError::MissingFile`] / [`DatasetError::Io`] when the file cannot be read,
+/// [`DatasetError::MissingFile`] / [`DatasetError::Io`] when the file cannot be read, and those
+/// of [`log_from_str`].
+pub fn read_log(path: &Path) -> Result<Vec<Pose>> {
+    log_from_str(&read_text(path)?, path)
+}
+
+/// Parses the text of a Redwood `.log` trajectory (see [`read_log`]); `path` is the file it came
+/// from, as errors name it.
+///
+/// # Errors
 /// [`DatasetError::Parse`] for a malformed line or a truncated record,
 /// [`DatasetError::NonFinitePose`] / [`DatasetError::NotRotation`] for an unusable matrix and
-/// [`DatasetError::NoPoses`] for a file without poses.
-pub fn read_log(path: &Path) -> Result<Vec<Pose>> {
-    let text = read_text(path)?;
-    let lines: Vec<(usize, &str)> = data_lines(&text).collect();
+/// [`DatasetError::NoPoses`] for a text without poses.
+pub fn log_from_str(text: &str, path: &Path) -> Result<Vec<Pose>> {
+    let lines: Vec<(usize, &str)> = data_lines(text).collect();
     // A record is the metadata line plus four matrix rows.
     let mut poses = Vec::with_capacity(lines.len() / 5);
     for (frame, record) in lines.chunks(5).enumerate() {
@@ -72,14 +80,22 @@ pub fn read_log(path: &Path) -> Result<Vec<Pose>> {
 /// in file order.
 ///
 /// # Errors
-/// [`DatasetError::MissingFile`] / [`DatasetError::Io`] when the file cannot be read,
-/// [`DatasetError::Parse`] for a line without 8 numbers, [`DatasetError::NonFinitePose`] /
-/// [`DatasetError::NotRotation`] for an unusable pose and [`DatasetError::NoPoses`] for a file
-/// without poses.
+/// [`DatasetError::MissingFile`] / [`DatasetError::Io`] when the file cannot be read, and those
+/// of [`tum_from_str`].
 pub fn read_tum(path: &Path) -> Result<Vec<(f64, Pose)>> {
-    let text = read_text(path)?;
+    tum_from_str(&read_text(path)?, path)
+}
+
+/// Parses the text of a TUM trajectory (see [`read_tum`]); `path` is the file it came from, as
+/// errors name it.
+///
+/// # Errors
+/// [`DatasetError::Parse`] for a line without 8 numbers, [`DatasetError::NonFinitePose`] /
+/// [`DatasetError::NotRotation`] for an unusable pose and [`DatasetError::NoPoses`] for a text
+/// without poses.
+pub fn tum_from_str(text: &str, path: &Path) -> Result<Vec<(f64, Pose)>> {
     let mut poses = Vec::new();
-    for (line, content) in data_lines(&text) {
+    for (line, content) in data_lines(text) {
         let v = parse_exact(path, line, content, 8)?;
         let frame = poses.len();
         if v.iter().any(|x| !x.is_finite()) {
@@ -225,12 +241,11 @@ fn nearest_rotation(r: &Matrix3<f64>) -> UnitQuaternion<f64> {
     UnitQuaternion::new_normalize(UnitQuaternion::from_rotation_matrix(&refined).into_inner())
 }
 
-/// Reads a `size` x `size` matrix from a text file whose lines hold its rows (ScanNet pose and
-/// intrinsic files).
-pub(crate) fn read_matrix_rows(path: &Path, size: usize) -> Result<Vec<Vec<f64>>> {
-    let text = read_text(path)?;
+/// Parses a `size` x `size` matrix from the text of a file whose lines hold its rows (ScanNet pose
+/// and intrinsic files); `path` names the file in errors.
+pub(crate) fn matrix_rows_from_str(text: &str, path: &Path, size: usize) -> Result<Vec<Vec<f64>>> {
     let mut rows = Vec::with_capacity(size);
-    for (line, content) in data_lines(&text) {
+    for (line, content) in data_lines(text) {
         let row = parse_numbers(path, line, content)?;
         if row.len() != size {
             return Err(DatasetError::parse(

@@ -64,13 +64,15 @@ impl TumReader {
         let scale = depth_scale(config, TUM_DEPTH_SCALE, dir)?;
         let colour = read_list(dir, "rgb.txt")?;
         let depth = read_list(dir, "depth.txt")?;
-        let frames: Vec<Entry> = associate(&depth, &colour, TUM_MAX_TIME_DIFFERENCE)
-            .into_iter()
-            .map(|(d, c)| Entry {
-                timestamp: Some(depth[d].time),
-                ..Entry::new(colour[c].path.clone(), depth[d].path.clone())
-            })
-            .collect();
+        let times = |list: &[Stamped]| list.iter().map(|s| s.time).collect::<Vec<f64>>();
+        let frames: Vec<Entry> =
+            associate(&times(&depth), &times(&colour), TUM_MAX_TIME_DIFFERENCE)
+                .into_iter()
+                .map(|(d, c)| Entry {
+                    timestamp: Some(depth[d].time),
+                    ..Entry::new(colour[c].path.clone(), depth[d].path.clone())
+                })
+                .collect();
         let mut selected = selection.apply(frames);
         let groundtruth = dir.join("groundtruth.txt");
         if groundtruth.is_file() {
@@ -102,56 +104,77 @@ fn read_list(dir: &Path, name: &str) -> Result<Vec<Stamped>> {
     })?;
     let text = read_text(&path)?;
     let mut list = Vec::new();
-    for (line, content) in data_lines(&text) {
-        let mut fields = content.split_whitespace();
-        let (Some(time), Some(file)) = (fields.next(), fields.next()) else {
-            return Err(DatasetError::parse(
-                &path,
-                line,
-                "expected `timestamp file`",
-            ));
-        };
-        let time = parse_number(&path, line, time)?;
-        if !time.is_finite() {
-            return Err(DatasetError::parse(
-                &path,
-                line,
-                "the timestamp is not finite",
-            ));
-        }
-        let file = dir.join(file);
+    for entry in list_from_str(&text, &path)? {
+        let file = dir.join(entry.file);
         require_file(&file, || {
-            format!("listed in {} line {line}", path.display())
+            format!("listed in {} line {}", path.display(), entry.line)
         })?;
-        list.push(Stamped { time, path: file });
+        list.push(Stamped {
+            time: entry.time,
+            path: file,
+        });
     }
     list.sort_by(|a, b| a.time.total_cmp(&b.time));
     Ok(list)
 }
 
-/// Pairs each depth image, in time order, with the nearest colour image not yet taken within
-/// `tolerance` seconds; returns `(depth index, colour index)` pairs. Both lists are sorted by time.
-fn associate(depth: &[Stamped], colour: &[Stamped], tolerance: f64) -> Vec<(usize, usize)> {
+/// One data line of a TUM image list (`rgb.txt` or `depth.txt`).
+#[derive(Clone, Copy, Debug, PartialEq)]
+pub struct ListEntry<'a> {
+    /// 1-based line number in the list.
+    pub line: usize,
+    /// Timestamp in seconds, finite.
+    pub time: f64,
+    /// The image file, relative to the sequence folder, as written.
+    pub file: &'a str,
+}
+
+/// Parses the text of a TUM image list (`rgb.txt` or `depth.txt`: `timestamp file` per line, `#`
+/// comments, further fields ignored), in file order; `path` is the file it came from, as errors
+/// name it. The listed files are not looked at.
+///
+/// # Errors
+/// [`DatasetError::Parse`] for a line with fewer than two fields or a timestamp that is not a
+/// finite number.
+pub fn list_from_str<'a>(text: &'a str, path: &Path) -> Result<Vec<ListEntry<'a>>> {
+    let mut list = Vec::new();
+    for (line, content) in data_lines(text) {
+        let mut fields = content.split_whitespace();
+        let (Some(time), Some(file)) = (fields.next(), fields.next()) else {
+            return Err(DatasetError::parse(path, line, "expected `timestamp file`"));
+        };
+        let time = parse_number(path, line, time)?;
+        if !time.is_finite() {
+            return Err(DatasetError::parse(
+                path,
+                line,
+                "the timestamp is not finite",
+            ));
+        }
+        list.push(ListEntry { line, time, file });
+    }
+    Ok(list)
+}
+
+/// Pairs each depth timestamp, in time order, with the nearest colour timestamp not yet taken
+/// within `tolerance` seconds, as [`TumReader`] associates its images; returns
+/// `(depth index, colour index)` pairs. Both slices must be sorted (ascending).
+pub fn associate(depth: &[f64], colour: &[f64], tolerance: f64) -> Vec<(usize, usize)> {
     let mut taken = vec![false; colour.len()];
     let mut pairs = Vec::with_capacity(depth.len());
-    for (d, stamped) in depth.iter().enumerate() {
-        let t = stamped.time;
-        let split = colour.partition_point(|c| c.time < t);
+    for (d, &t) in depth.iter().enumerate() {
+        let split = colour.partition_point(|&c| c < t);
         // The nearest free candidate on each side; the lists are sorted, so the scans stop at the
         // first free one or when the tolerance is exceeded.
         let before = (0..split)
             .rev()
-            .take_while(|&c| t - colour[c].time <= tolerance)
+            .take_while(|&c| t - colour[c] <= tolerance)
             .find(|&c| !taken[c]);
         let after = (split..colour.len())
-            .take_while(|&c| colour[c].time - t <= tolerance)
+            .take_while(|&c| colour[c] - t <= tolerance)
             .find(|&c| !taken[c]);
         let nearest = match (before, after) {
-            (Some(b), Some(a)) => Some(if t - colour[b].time <= colour[a].time - t {
-                b
-            } else {
-                a
-            }),
+            (Some(b), Some(a)) => Some(if t - colour[b] <= colour[a] - t { b } else { a }),
             (b, a) => b.or(a),
         };
         if let Some(c) = nearest {
@@ -204,20 +227,10 @@ mod tests {
     use super::*;
     use nalgebra::Vector3;
 
-    fn stamped(times: &[f64]) -> Vec<Stamped> {
-        times
-            .iter()
-            .map(|&time| Stamped {
-                time,
-                path: PathBuf::new(),
-            })
-            .collect()
-    }
-
     #[test]
     fn association_is_greedy_in_time_order_and_uses_each_colour_once() {
-        let depth = stamped(&[1.000, 1.010, 1.100, 2.000]);
-        let colour = stamped(&[1.005, 1.095, 1.950]);
+        let depth = [1.000, 1.010, 1.100, 2.000];
+        let colour = [1.005, 1.095, 1.950];
         // 1.010 would like 1.005 too but 1.000 took it; 1.095 is too far for it.
         // 2.000 has no colour image within 0.02 s and is dropped.
         assert_eq!(associate(&depth, &colour, 0.02), vec![(0, 0), (2, 1)]);
