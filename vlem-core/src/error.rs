@@ -79,6 +79,16 @@ pub enum CoreError {
         /// The capability it lacks (e.g. "text encoding").
         capability: &'static str,
     },
+    /// A label-driven encoder was handed a frame without ground-truth labels.
+    #[error(
+        "the encoder `{encoder}` embeds ground-truth labels, but frame {frame} has none: use a labelled dataset ([dataset] kind = \"synthetic\", or an ICL-layout folder with label/*.png and labels.json)"
+    )]
+    MissingLabels {
+        /// Encoder name.
+        encoder: String,
+        /// The frame without labels.
+        frame: usize,
+    },
     /// A stage name that no linked plugin registered.
     #[error("{}", unknown_message(*.kind, name, known, feature.as_deref()))]
     UnknownImplementation {

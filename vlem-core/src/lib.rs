@@ -25,5 +25,6 @@ pub use traits::region_proposer::RegionProposer;
 pub use traits::segmenter::{PointSet, QueryScores, Segmenter};
 pub use traits::tracker::{TrackedPose, Tracker, TrackingState};
 pub use types::{
-    ColouredMesh, DepthImage, Frame, Intrinsics, PixelRect, Pose, Region, RgbImage, RigidF32,
+    ColouredMesh, DepthImage, Frame, Intrinsics, LabelImage, LabelNames, PixelRect, Pose, Region,
+    RgbImage, RigidF32,
 };

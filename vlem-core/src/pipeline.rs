@@ -11,7 +11,7 @@
 
 use std::collections::BTreeMap;
 use std::sync::mpsc::{Receiver, SyncSender, TrySendError, sync_channel};
-use std::time::{Duration, Instant};
+use std::time::Instant;
 
 use serde::Serialize;
 
@@ -204,11 +204,7 @@ impl Pipeline {
                 ),
             });
         }
-        if config.queue_capacity == 0 {
-            return Err(CoreError::MissingStage {
-                message: "[pipeline] queue_capacity must be at least 1".into(),
-            });
-        }
+        config.validate()?;
         Ok(Self {
             tracker,
             proposer,
@@ -315,11 +311,7 @@ fn track_frames(
 ) -> Result<TrackingOutcome> {
     let mut out = TrackingOutcome::default();
     let started = Instant::now();
-    let frame_period = if config.frame_rate > 0.0 {
-        Duration::from_secs_f64(1.0 / config.frame_rate)
-    } else {
-        Duration::ZERO
-    };
+    let frame_period = config.frame_period();
     for index in 0..total {
         if config.mode == Mode::RealTime {
             // Frames "arrive" at the sensor rate; never faster.
@@ -401,7 +393,13 @@ fn embed_frames(
         let embeddings = match encoder {
             Some(e) => {
                 let t = Instant::now();
-                let embeddings = e.encode_image(&frame.colour, &regions)?;
+                if e.needs_labels() && frame.labels.is_none() {
+                    return Err(CoreError::MissingLabels {
+                        encoder: e.name().to_owned(),
+                        frame: frame.index,
+                    });
+                }
+                let embeddings = e.encode_frame(&frame, &regions)?;
                 out.encode.add(t);
                 Some(embeddings)
             }

@@ -283,6 +283,9 @@ pub struct Frame {
     pub intrinsics: Intrinsics,
     /// Camera-to-world pose, where the dataset has one.
     pub pose: Option<Pose>,
+    /// Ground-truth class per pixel, where the dataset is labelled (synthetic scenes, labelled
+    /// datasets on disk); what label-driven encoders and the segmentation evaluation read.
+    pub labels: Option<LabelImage>,
 }
 
 impl Frame {
@@ -328,7 +331,129 @@ impl Frame {
             depth,
             intrinsics,
             pose,
+            labels: None,
         })
+    }
+
+    /// The frame with ground-truth labels attached.
+    ///
+    /// # Errors
+    /// [`CoreError::SizeMismatch`] when the label image is not the frame's size.
+    pub fn with_labels(mut self, labels: LabelImage) -> Result<Self> {
+        let (w, h) = (self.intrinsics.width, self.intrinsics.height);
+        if (labels.width(), labels.height()) != (w, h) {
+            return Err(CoreError::SizeMismatch {
+                frame: self.index,
+                what: "label image",
+                expected_width: w,
+                expected_height: h,
+                actual_width: labels.width(),
+                actual_height: labels.height(),
+            });
+        }
+        self.labels = Some(labels);
+        Ok(self)
+    }
+}
+
+/// Class names of a labelled dataset, by class id (id 0 means "unlabelled" and has no entry).
+#[derive(Clone, Debug, Default, PartialEq, Eq)]
+pub struct LabelNames {
+    names: std::collections::BTreeMap<u16, String>,
+}
+
+impl LabelNames {
+    /// A table from `(id, name)` pairs; an entry for id 0 is dropped, since 0 means unlabelled.
+    pub fn new(entries: impl IntoIterator<Item = (u16, String)>) -> Self {
+        Self {
+            names: entries.into_iter().filter(|(id, _)| *id != 0).collect(),
+        }
+    }
+
+    /// The name of class `id`; `None` for 0 and unknown ids.
+    pub fn name(&self, id: u16) -> Option<&str> {
+        self.names.get(&id).map(String::as_str)
+    }
+
+    /// Every `(id, name)`, by increasing id.
+    pub fn iter(&self) -> impl Iterator<Item = (u16, &str)> {
+        self.names.iter().map(|(id, name)| (*id, name.as_str()))
+    }
+
+    /// Number of named classes.
+    pub fn len(&self) -> usize {
+        self.names.len()
+    }
+
+    /// Whether no class is named.
+    pub fn is_empty(&self) -> bool {
+        self.names.is_empty()
+    }
+}
+
+/// Ground-truth class ids of an image's pixels, with the dataset's class names.
+#[derive(Clone, Debug, PartialEq)]
+pub struct LabelImage {
+    width: u32,
+    height: u32,
+    ids: Vec<u16>,
+    names: std::sync::Arc<LabelNames>,
+}
+
+impl LabelImage {
+    /// Wraps `width * height` row-major class ids (0 = unlabelled). Ids without a name are kept;
+    /// users of the labels treat them like unlabelled pixels.
+    ///
+    /// # Errors
+    /// [`CoreError::BufferSize`] when the buffer length does not match the size.
+    pub fn new(
+        width: u32,
+        height: u32,
+        ids: Vec<u16>,
+        names: std::sync::Arc<LabelNames>,
+    ) -> Result<Self> {
+        let expected = width as usize * height as usize;
+        if ids.len() != expected {
+            return Err(CoreError::BufferSize {
+                what: "label image",
+                width,
+                height,
+                expected,
+                actual: ids.len(),
+            });
+        }
+        Ok(Self {
+            width,
+            height,
+            ids,
+            names,
+        })
+    }
+
+    /// Width in pixels.
+    pub fn width(&self) -> u32 {
+        self.width
+    }
+
+    /// Height in pixels.
+    pub fn height(&self) -> u32 {
+        self.height
+    }
+
+    /// Row-major class ids.
+    pub fn ids(&self) -> &[u16] {
+        &self.ids
+    }
+
+    /// The class id at `(u, v)`; `None` outside the image.
+    pub fn id(&self, u: u32, v: u32) -> Option<u16> {
+        (u < self.width && v < self.height)
+            .then(|| self.ids[v as usize * self.width as usize + u as usize])
+    }
+
+    /// The dataset's class names.
+    pub fn names(&self) -> &std::sync::Arc<LabelNames> {
+        &self.names
     }
 }
 
@@ -532,5 +657,36 @@ mod tests {
         pose.translation.vector.x = f64::NAN;
         let err = Frame::new(3, 0.0, colour, depth, k, Some(pose)).unwrap_err();
         assert_eq!(err.to_string(), "frame 3: pose is not finite");
+    }
+
+    #[test]
+    fn labels_must_cover_the_frame_and_id_zero_has_no_name() {
+        let k = Intrinsics::new(4, 2, 2.0, 2.0, 2.0, 1.0).unwrap();
+        let frame = Frame::new(
+            1,
+            0.0,
+            RgbImage::filled(4, 2, [1, 2, 3]),
+            DepthImage::new(4, 2, vec![1.0; 8]).unwrap(),
+            k,
+            None,
+        )
+        .unwrap();
+        let names = std::sync::Arc::new(LabelNames::new([
+            (0, "void".to_owned()),
+            (5, "chair".to_owned()),
+        ]));
+        assert_eq!(names.len(), 1);
+        assert_eq!(names.name(0), None);
+        assert_eq!(names.name(5), Some("chair"));
+        assert!(LabelImage::new(4, 2, vec![0; 7], names.clone()).is_err());
+        let small = LabelImage::new(2, 2, vec![5; 4], names.clone()).unwrap();
+        let err = frame.clone().with_labels(small).unwrap_err();
+        assert_eq!(err.to_string(), "frame 1: label image is 2x2, expected 4x2");
+        let labels = LabelImage::new(4, 2, vec![0, 5, 5, 0, 0, 0, 5, 9], names).unwrap();
+        let frame = frame.with_labels(labels).unwrap();
+        let labels = frame.labels.as_ref().unwrap();
+        assert_eq!(labels.id(1, 0), Some(5));
+        assert_eq!(labels.id(3, 1), Some(9));
+        assert_eq!(labels.id(4, 0), None);
     }
 }

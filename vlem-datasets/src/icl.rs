@@ -6,6 +6,8 @@
 //! rgbd.match           optional: lines `depth/00000.png color/00000.jpg` pairing the two
 //! intrinsics.json      Open3D PinholeCameraIntrinsic (or camera_intrinsic.json, or [dataset] intrinsics)
 //! trajectory.log       optional Redwood .log, camera-to-world (or the only *.log, or [dataset] trajectory)
+//! labels.json          optional {"<class id>": "<name>", ...}: the folder is labelled, and then
+//! label/               00000.png ...  class ids per pixel (16- or 8-bit), named like the depth files
 //! ```
 //!
 //! Without `rgbd.match`, colour and depth files are paired by their sorted order, so numbering may
@@ -13,6 +15,7 @@
 
 use std::path::{Path, PathBuf};
 
+use vlem_core::LabelNames;
 use vlem_core::config::DatasetConfig;
 
 use crate::calibration::read_open3d_intrinsics;
@@ -21,7 +24,7 @@ use crate::sequence::{
     Camera, ColourFit, Entry, Selection, Sequence, attach_poses, depth_scale, list_files,
     reader_via_sequence, require_file,
 };
-use crate::text::{data_lines, read_text};
+use crate::text::{match_pairs_from_str, read_text};
 use crate::trajectory::read_log;
 
 /// Raw depth units per metre of ICL-NUIM and Redwood (millimetres).
@@ -56,7 +59,8 @@ impl IclReader {
     pub fn open(dir: &Path, config: &DatasetConfig) -> Result<Self> {
         let selection = Selection::from_config(config, dir)?;
         let scale = depth_scale(config, ICL_DEPTH_SCALE, dir)?;
-        let mut selected = selection.apply(frame_files(dir)?);
+        let (entries, label_names) = attach_labels(dir, frame_files(dir)?)?;
+        let mut selected = selection.apply(entries);
         let intrinsics_path = find_intrinsics(dir, config)?;
         let intrinsics = read_open3d_intrinsics(&intrinsics_path)?;
         if let Some(trajectory) = find_trajectory(dir, config)? {
@@ -70,8 +74,56 @@ impl IclReader {
             scale,
             ColourFit::SameSize,
         )?;
+        let seq = match label_names {
+            Some(names) => seq.with_label_names(names),
+            None => seq,
+        };
         Ok(Self { seq })
     }
+}
+
+/// Where the folder has `labels.json`, the class names and each frame's label image
+/// (`label/<depth file name>`); otherwise the entries unchanged and no names.
+fn attach_labels(dir: &Path, mut entries: Vec<Entry>) -> Result<(Vec<Entry>, Option<LabelNames>)> {
+    let names_path = dir.join("labels.json");
+    if !names_path.is_file() {
+        return Ok((entries, None));
+    }
+    let text = read_text(&names_path)?;
+    let table: std::collections::BTreeMap<String, String> =
+        serde_json::from_str(&text).map_err(|e| {
+            DatasetError::parse(
+                &names_path,
+                e.line(),
+                format!("expected {{\"<class id>\": \"<name>\", ...}}: {e}"),
+            )
+        })?;
+    let mut names = Vec::with_capacity(table.len());
+    for (id, name) in table {
+        let id: u16 = id.trim().parse().map_err(|_| {
+            DatasetError::parse(
+                &names_path,
+                1,
+                format!("class id `{id}` is not an integer in 0..=65535"),
+            )
+        })?;
+        names.push((id, name));
+    }
+    let label_dir = dir.join("label");
+    for entry in &mut entries {
+        let Some(name) = entry.depth.file_name() else {
+            continue;
+        };
+        let path = label_dir.join(name);
+        require_file(&path, || {
+            format!(
+                "{} is there, so label/ must hold one class-id image per depth image",
+                names_path.display()
+            )
+        })?;
+        entry.labels = Some(path);
+    }
+    Ok((entries, Some(LabelNames::new(names))))
 }
 
 /// The colour/depth pairs of the underlying sequence, from `rgbd.match` or by sorted order.
@@ -115,20 +167,9 @@ fn frame_files(dir: &Path) -> Result<Vec<Entry>> {
 fn read_match_file(dir: &Path, path: &Path) -> Result<Vec<Entry>> {
     let text = read_text(path)?;
     let mut entries = Vec::new();
-    for (line, content) in data_lines(&text) {
-        let fields: Vec<&str> = content.split_whitespace().collect();
-        let &[depth, colour] = fields.as_slice() else {
-            return Err(DatasetError::parse(
-                path,
-                line,
-                format!(
-                    "expected `depth-file colour-file`, found {} fields",
-                    fields.len()
-                ),
-            ));
-        };
-        let (depth, colour) = (dir.join(depth), dir.join(colour));
-        let listed = || format!("listed in {} line {line}", path.display());
+    for pair in match_pairs_from_str(&text, path)? {
+        let (depth, colour) = (dir.join(pair.depth), dir.join(pair.colour));
+        let listed = || format!("listed in {} line {}", path.display(), pair.line);
         require_file(&depth, listed)?;
         require_file(&colour, listed)?;
         entries.push(Entry::new(colour, depth));

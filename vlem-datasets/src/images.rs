@@ -1,45 +1,74 @@
 //! Decoding colour and depth images into the core types.
+//!
+//! The path functions read the whole file and hand its bytes to the `*_from_bytes` functions,
+//! which do the decoding; those are public so that callers (and the fuzz targets) can decode
+//! images held in memory.
 
+use std::io::Cursor;
 use std::path::Path;
 
 use image::imageops::FilterType;
 use image::{DynamicImage, ImageReader};
-use vlem_core::{DepthImage, RgbImage};
+use vlem_core::{DepthImage, LabelImage, LabelNames, RgbImage};
 
 use crate::error::{DatasetError, Result};
 
-/// Opens an image file, trusting its content over its extension (datasets do mislabel files).
-fn open(path: &Path) -> Result<ImageReader<std::io::BufReader<std::fs::File>>> {
-    ImageReader::open(path)
-        .map_err(|e| DatasetError::io(path, e))?
-        .with_guessed_format()
-        .map_err(|e| DatasetError::io(path, e))
+fn read_bytes(path: &Path) -> Result<Vec<u8>> {
+    std::fs::read(path).map_err(|e| DatasetError::io(path, e))
 }
 
-fn decode(path: &Path) -> Result<DynamicImage> {
-    open(path)?
+/// Decodes `bytes`, trusting their content over the file's extension (datasets do mislabel files).
+fn decode(bytes: &[u8], origin: &Path) -> Result<DynamicImage> {
+    ImageReader::new(Cursor::new(bytes))
+        .with_guessed_format()
+        .map_err(|e| DatasetError::io(origin, e))?
         .decode()
         .map_err(|source| DatasetError::UnreadableImage {
-            path: path.to_path_buf(),
+            path: origin.to_path_buf(),
             source,
         })
 }
 
 /// Reads a colour image as 8-bit RGB; grayscale, alpha and 16-bit inputs are converted.
 pub(crate) fn read_colour(path: &Path) -> Result<RgbImage> {
-    rgb_from(decode(path)?, path)
+    colour_from_bytes(&read_bytes(path)?, path)
+}
+
+/// Decodes a colour image (PNG, JPEG or PNM, recognised by content) held in memory as 8-bit RGB;
+/// grayscale, alpha and 16-bit inputs are converted. `origin` is the file the bytes came from, as
+/// errors name it.
+///
+/// # Errors
+/// [`DatasetError::UnreadableImage`] when the bytes are not an image the decoder can read (or one
+/// beyond its memory limits), [`DatasetError::Core`] when the decoded size is inconsistent.
+pub fn colour_from_bytes(bytes: &[u8], origin: &Path) -> Result<RgbImage> {
+    rgb_from(decode(bytes, origin)?, origin)
 }
 
 /// Reads a colour image and resamples it (bilinear) to `width` x `height`, for layouts whose colour
 /// camera has a higher resolution than the depth camera it is registered to (ScanNet).
 pub(crate) fn read_colour_resized(path: &Path, width: u32, height: u32) -> Result<RgbImage> {
-    let image = decode(path)?;
+    colour_resized_from_bytes(&read_bytes(path)?, width, height, path)
+}
+
+/// [`colour_from_bytes`], then resampled (bilinear) to `width` x `height` when the image has
+/// another size, as the ScanNet reader registers colour to the depth camera.
+///
+/// # Errors
+/// Those of [`colour_from_bytes`].
+pub fn colour_resized_from_bytes(
+    bytes: &[u8],
+    width: u32,
+    height: u32,
+    origin: &Path,
+) -> Result<RgbImage> {
+    let image = decode(bytes, origin)?;
     let image = if (image.width(), image.height()) == (width, height) {
         image
     } else {
         image.resize_exact(width, height, FilterType::Triangle)
     };
-    rgb_from(image, path)
+    rgb_from(image, origin)
 }
 
 fn rgb_from(image: DynamicImage, path: &Path) -> Result<RgbImage> {
@@ -53,22 +82,34 @@ fn rgb_from(image: DynamicImage, path: &Path) -> Result<RgbImage> {
 
 /// Reads a 16-bit single-channel depth image and converts it to metres with `scale` raw units per
 /// metre (0 stays "no measurement").
+pub(crate) fn read_depth(path: &Path, scale: f32) -> Result<DepthImage> {
+    depth_from_bytes(&read_bytes(path)?, scale, path)
+}
+
+/// Decodes a 16-bit single-channel depth image (a 16-bit grayscale PNG, as every supported layout
+/// stores depth) held in memory, and converts it to metres with `scale` raw units per metre
+/// (0 stays "no measurement"). `origin` is the file the bytes came from, as errors name it.
 ///
 /// Anything else is refused rather than converted: an 8-bit or colour "depth" image is almost
 /// always a visualisation, whose values are not distances.
-pub(crate) fn read_depth(path: &Path, scale: f32) -> Result<DepthImage> {
-    match decode(path)? {
+///
+/// # Errors
+/// [`DatasetError::UnreadableImage`] when the bytes are not an image the decoder can read (or one
+/// beyond its memory limits), [`DatasetError::UnsupportedImage`] for an image that is not 16-bit
+/// single-channel, [`DatasetError::Core`] when the decoded size is inconsistent.
+pub fn depth_from_bytes(bytes: &[u8], scale: f32, origin: &Path) -> Result<DepthImage> {
+    match decode(bytes, origin)? {
         DynamicImage::ImageLuma16(raw) => {
             let (width, height) = raw.dimensions();
             DepthImage::from_raw_u16(width, height, raw.as_raw(), scale).map_err(|source| {
                 DatasetError::Core {
-                    path: path.to_path_buf(),
+                    path: origin.to_path_buf(),
                     source,
                 }
             })
         }
         other => Err(DatasetError::UnsupportedImage {
-            path: path.to_path_buf(),
+            path: origin.to_path_buf(),
             reason: format!(
                 "depth must be a 16-bit single-channel image, this one is {:?} ({} bits per pixel)",
                 other.color(),
@@ -80,10 +121,54 @@ pub(crate) fn read_depth(path: &Path, scale: f32) -> Result<DepthImage> {
 
 /// The width and height of an image, read from its header only.
 pub(crate) fn dimensions(path: &Path) -> Result<(u32, u32)> {
-    open(path)?
+    ImageReader::open(path)
+        .map_err(|e| DatasetError::io(path, e))?
+        .with_guessed_format()
+        .map_err(|e| DatasetError::io(path, e))?
         .into_dimensions()
         .map_err(|source| DatasetError::UnreadableImage {
             path: path.to_path_buf(),
             source,
         })
+}
+
+/// Reads a label image: one class id per pixel (16-bit or 8-bit single channel, 0 = unlabelled).
+pub(crate) fn read_labels(path: &Path, names: &std::sync::Arc<LabelNames>) -> Result<LabelImage> {
+    labels_from_bytes(&read_bytes(path)?, names, path)
+}
+
+/// Decodes a label image held in memory: 16-bit or 8-bit single channel, one class id per pixel
+/// (0 = unlabelled), named by `names`. `origin` is the file the bytes came from, as errors name it.
+///
+/// # Errors
+/// [`DatasetError::UnreadableImage`] when the bytes are not an image the decoder can read,
+/// [`DatasetError::UnsupportedImage`] for a colour image (ids are not colours).
+pub fn labels_from_bytes(
+    bytes: &[u8],
+    names: &std::sync::Arc<LabelNames>,
+    origin: &Path,
+) -> Result<LabelImage> {
+    let (width, height, ids) = match decode(bytes, origin)? {
+        DynamicImage::ImageLuma16(raw) => {
+            let (w, h) = raw.dimensions();
+            (w, h, raw.into_raw())
+        }
+        DynamicImage::ImageLuma8(raw) => {
+            let (w, h) = raw.dimensions();
+            (w, h, raw.into_raw().into_iter().map(u16::from).collect())
+        }
+        other => {
+            return Err(DatasetError::UnsupportedImage {
+                path: origin.to_path_buf(),
+                reason: format!(
+                    "labels must be a single-channel image of class ids, this one is {:?}",
+                    other.color()
+                ),
+            });
+        }
+    };
+    LabelImage::new(width, height, ids, names.clone()).map_err(|source| DatasetError::Core {
+        path: origin.to_path_buf(),
+        source,
+    })
 }

@@ -24,6 +24,7 @@ use vlem_core::FrameSource;
 use vlem_core::config::{DatasetConfig, DatasetKind};
 
 pub mod calibration;
+mod depth_check;
 mod error;
 pub mod icl;
 mod images;
@@ -35,12 +36,17 @@ mod text;
 pub mod trajectory;
 pub mod tum;
 
-pub use calibration::{REPLICA_DEFAULT_INTRINSICS, TUM_DEFAULT_INTRINSICS, read_open3d_intrinsics};
+pub use calibration::{
+    REPLICA_DEFAULT_INTRINSICS, TUM_DEFAULT_INTRINSICS, open3d_intrinsics_from_str,
+    read_open3d_intrinsics,
+};
 pub use error::{DatasetError, Result};
 pub use icl::IclReader;
+pub use images::{colour_from_bytes, colour_resized_from_bytes, depth_from_bytes};
 pub use replica::ReplicaReader;
 pub use scannet::ScanNetReader;
 pub use synthetic::{SyntheticReader, SyntheticScene};
+pub use text::{MatchPair, match_pairs_from_str};
 pub use tum::TumReader;
 
 /// What [`detect_kind`] looks for, in the order it checks.

@@ -32,6 +32,8 @@ pub(crate) struct Entry {
     /// The dataset's own timestamp, where the layout has one.
     pub(crate) timestamp: Option<f64>,
     pub(crate) pose: PoseRef,
+    /// Ground-truth class ids, where the dataset is labelled.
+    pub(crate) labels: Option<PathBuf>,
 }
 
 impl Entry {
@@ -42,6 +44,7 @@ impl Entry {
             depth,
             timestamp: None,
             pose: PoseRef::None,
+            labels: None,
         }
     }
 }
@@ -239,6 +242,8 @@ pub(crate) struct Sequence {
     pub(crate) camera: Camera,
     pub(crate) depth_scale: f32,
     pub(crate) colour_fit: ColourFit,
+    /// Class names of a labelled dataset (whose entries carry label files).
+    pub(crate) label_names: Option<std::sync::Arc<vlem_core::LabelNames>>,
 }
 
 impl Sequence {
@@ -263,7 +268,14 @@ impl Sequence {
             camera,
             depth_scale,
             colour_fit,
+            label_names: None,
         })
+    }
+
+    /// Marks the sequence as labelled: frames whose entry has a label file get its labels.
+    pub(crate) fn with_label_names(mut self, names: vlem_core::LabelNames) -> Self {
+        self.label_names = Some(std::sync::Arc::new(names));
+        self
     }
 
     pub(crate) fn describe(&self) -> String {
@@ -291,6 +303,7 @@ impl Sequence {
             });
         };
         let depth = images::read_depth(&entry.depth, self.depth_scale)?;
+        crate::depth_check::check_depth_scale(&depth, self.depth_scale, &entry.depth)?;
         let depth_size = (depth.width(), depth.height());
         let colour = match self.colour_fit {
             ColourFit::SameSize => images::read_colour(&entry.colour)?,
@@ -324,10 +337,21 @@ impl Sequence {
         // Layouts without timestamps use the underlying frame index, so that a strided run still
         // reports where in the recording each frame is.
         let timestamp = entry.timestamp.unwrap_or(*source_index as f64);
-        Frame::new(index, timestamp, colour, depth, k, pose).map_err(|source| DatasetError::Core {
-            path: entry.depth.clone(),
-            source,
-        })
+        let frame = Frame::new(index, timestamp, colour, depth, k, pose).map_err(|source| {
+            DatasetError::Core {
+                path: entry.depth.clone(),
+                source,
+            }
+        })?;
+        match (&entry.labels, &self.label_names) {
+            (Some(path), Some(names)) => frame
+                .with_labels(images::read_labels(path, names)?)
+                .map_err(|source| DatasetError::Core {
+                    path: path.clone(),
+                    source,
+                }),
+            _ => Ok(frame),
+        }
     }
 }
 

@@ -383,7 +383,23 @@ fn a_scene_written_to_disk_reads_back_through_the_icl_reader() {
             .unwrap()
             .into_luma16();
         assert_eq!(labels.into_raw(), view.labels);
+        // The ICL reader picks up label/ and labels.json: the frame carries the same labels.
+        let read = frame
+            .labels
+            .as_ref()
+            .expect("a labelled folder gives labelled frames");
+        assert_eq!(read.ids(), view.labels.as_slice());
+        assert_eq!(read.names().name(5), Some("chair"));
     }
+    std::fs::remove_file(tmp.path().join("label/000003.png")).unwrap();
+    let err = open(&DatasetConfig::default(), tmp.path())
+        .err()
+        .expect("a missing label image is refused")
+        .to_string();
+    assert!(
+        err.contains("000003.png") && err.contains("labels.json"),
+        "{err}"
+    );
     let labels: serde_json::Value =
         serde_json::from_str(&std::fs::read_to_string(tmp.path().join("labels.json")).unwrap())
             .unwrap();
@@ -417,6 +433,12 @@ fn kind_synthetic_opens_from_a_config_without_a_folder() {
     assert_eq!(frame.timestamp, 8.0 / SYNTHETIC_FRAME_RATE);
     assert_eq!(frame.pose.unwrap(), scene.pose(8).unwrap());
     assert_eq!(frame.colour, scene.render(8).unwrap().colour);
+    let labels = frame
+        .labels
+        .as_ref()
+        .expect("synthetic frames are labelled");
+    assert_eq!(labels.ids(), scene.render(8).unwrap().labels.as_slice());
+    assert_eq!(labels.names().name(1), Some("wall"));
     let err = source.frame(3).unwrap_err().to_string();
     assert!(err.contains("frame 3 requested"), "{err}");
 

@@ -8,7 +8,7 @@
 
 use crate::embeddings::PixelEmbeddings;
 use crate::error::{CoreError, Result};
-use crate::types::{Region, RgbImage};
+use crate::types::{Frame, Region, RgbImage};
 
 /// Maps images (and, where supported, text) into one embedding space of dimension [`Encoder::dim`].
 pub trait Encoder: Send + Sync {
@@ -21,6 +21,21 @@ pub trait Encoder: Send + Sync {
     /// Whether [`Encoder::encode_image`] needs regions from a [`crate::RegionProposer`].
     fn needs_regions(&self) -> bool {
         false
+    }
+
+    /// Whether the encoder reads the frame's ground-truth labels ([`Frame::labels`]), as
+    /// label-driven upper-bound encoders do; the pipeline refuses frames without labels for it.
+    fn needs_labels(&self) -> bool {
+        false
+    }
+
+    /// Embeds a frame: what the pipeline calls. The default embeds the colour image with
+    /// [`Encoder::encode_image`]; encoders that read more of the frame (its labels) override it.
+    ///
+    /// # Errors
+    /// As [`Encoder::encode_image`].
+    fn encode_frame(&self, frame: &Frame, regions: &[Region]) -> Result<PixelEmbeddings> {
+        self.encode_image(&frame.colour, regions)
     }
 
     /// Embeds an image. `regions` is empty unless [`Encoder::needs_regions`] is true.

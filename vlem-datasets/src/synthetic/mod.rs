@@ -30,7 +30,9 @@
 
 use nalgebra::{Point3, Vector3};
 use vlem_core::config::{DatasetConfig, SyntheticConfig};
-use vlem_core::{DepthImage, Frame, FrameSource, Intrinsics, Pose, RgbImage};
+use vlem_core::{
+    DepthImage, Frame, FrameSource, Intrinsics, LabelImage, LabelNames, Pose, RgbImage,
+};
 
 use crate::error::{DatasetError, Result};
 
@@ -130,7 +132,14 @@ impl SyntheticView {
     /// # Errors
     /// [`DatasetError::Synthetic`] if the images and intrinsics disagree (they never do for views
     /// made by [`SyntheticScene`]).
+    /// The frame carries the view's class ids as its labels, named by [`synthetic_label_names`].
     pub fn into_frame(self, index: usize, timestamp: f64) -> Result<Frame> {
+        let k = self.intrinsics;
+        let fail = |e: vlem_core::CoreError| DatasetError::Synthetic {
+            message: e.to_string(),
+        };
+        let labels = LabelImage::new(k.width, k.height, self.labels, synthetic_label_names())
+            .map_err(fail)?;
         Frame::new(
             index,
             timestamp,
@@ -139,10 +148,21 @@ impl SyntheticView {
             self.intrinsics,
             Some(self.pose),
         )
-        .map_err(|e| DatasetError::Synthetic {
-            message: e.to_string(),
-        })
+        .and_then(|frame| frame.with_labels(labels))
+        .map_err(fail)
     }
+}
+
+/// The names of [`SYNTHETIC_LABELS`] as frame labels use them (one shared table).
+pub fn synthetic_label_names() -> std::sync::Arc<LabelNames> {
+    static NAMES: std::sync::OnceLock<std::sync::Arc<LabelNames>> = std::sync::OnceLock::new();
+    NAMES
+        .get_or_init(|| {
+            std::sync::Arc::new(LabelNames::new(
+                SYNTHETIC_LABELS.iter().map(|l| (l.id, l.name.to_owned())),
+            ))
+        })
+        .clone()
 }
 
 /// A ground-truth point on a scene surface.
