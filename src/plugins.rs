@@ -9,6 +9,8 @@
 //! root `Cargo.toml`, reference it below under that feature, and add a `feature_hint!` line so a
 //! binary built without it tells the user which feature to enable.
 
+// Its backends register only when their cargo features are on; its feature hints always do.
+use vlem_backends as _;
 use vlem_maps as _;
 #[cfg(feature = "colour-names")]
 use vlem_plugin_colour_names as _;

@@ -29,7 +29,13 @@ fn data() -> String {
 #[test]
 fn plugins_lists_every_linked_implementation() {
     let out = ok(&["plugins"]);
-    for name in ["ground-truth", "colour-names", "point-cloud", "threshold"] {
+    for name in [
+        "ground-truth",
+        "colour-names",
+        "label-text",
+        "point-cloud",
+        "threshold",
+    ] {
         assert!(
             out.contains(&format!("  {name} ")),
             "`{name}` missing from:\n{out}"
@@ -179,7 +185,7 @@ fn config_errors_name_the_problem() {
 
     let err = run("[encoder]\nkind = \"clip\"\n[map]\nkind = \"point-cloud\"\n");
     assert!(
-        err.contains("unknown encoder `clip` (known: colour-names)"),
+        err.contains("unknown encoder `clip` (known: colour-names, label-text)"),
         "{err}"
     );
 

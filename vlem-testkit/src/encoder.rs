@@ -12,6 +12,13 @@
 //! Encoders that [`need regions`](Encoder::needs_regions) get
 //! [`rectangular_regions`](crate::images::rectangular_regions); others get none.
 //!
+//! Encoders that [`need labels`](Encoder::needs_labels) (label-driven upper bounds) are fed
+//! through [`Encoder::encode_frame`] instead of [`Encoder::encode_image`]: each synthetic image
+//! becomes a frame ([`frame_of`](crate::images::frame_of)) carrying
+//! [`synthetic_labels`](crate::images::synthetic_labels), which include unlabelled pixels and an
+//! id without a name. They must also answer a frame without labels, and a bare image, with an
+//! error rather than a panic.
+//!
 //! The checks report failures by panicking, like `assert!`, with the encoder, image and pixel in the
 //! message.
 #![allow(
@@ -116,6 +123,11 @@ macro_rules! encoder_conformance {
             #[test]
             fn text_embedding_is_unit_norm_and_deterministic() {
                 $crate::encoder::check_text($build, $text);
+            }
+
+            #[test]
+            fn missing_labels_are_an_error() {
+                $crate::encoder::check_missing_labels($build);
             }
         }
     };
@@ -246,6 +258,29 @@ pub fn check_text(build: BuildEncoder, text: Option<&str>) {
     }
 }
 
+/// For encoders that [need labels](Encoder::needs_labels): checks that a frame without labels and
+/// a bare image are refused with an error (the pipeline checks labels itself, but an encoder
+/// called directly must not panic). Passes trivially for other encoders.
+#[track_caller]
+pub fn check_missing_labels(build: BuildEncoder) {
+    let encoder = build();
+    if !encoder.needs_labels() {
+        return;
+    }
+    let name = encoder.name();
+    let image = images::gradient(64, 48);
+    let regions = regions_for(encoder.as_ref(), &image);
+    let frame = images::frame_of(&image, None);
+    assert!(
+        encoder.encode_frame(&frame, &regions).is_err(),
+        "encoder `{name}` needs labels but embedded a frame without them"
+    );
+    assert!(
+        encoder.encode_image(&image, &regions).is_err(),
+        "encoder `{name}` needs labels but embedded a bare image"
+    );
+}
+
 /// Asserts that `v` is non-empty, finite and has L2 norm 1 within [`NORM_TOLERANCE`]; `what` names
 /// the vector in the failure message.
 #[track_caller]
@@ -279,15 +314,18 @@ pub fn assert_close(a: &[f32], b: &[f32], what: &str) {
 }
 
 /// Encodes `image`, passing [`images::rectangular_regions`] when the encoder needs regions, and
-/// panics with the encoder's error otherwise.
+/// panics with the encoder's error otherwise. An encoder that needs labels gets a frame of the
+/// image with [`images::synthetic_labels`] through [`Encoder::encode_frame`].
 #[track_caller]
 pub fn encode(encoder: &dyn Encoder, label: &str, image: &RgbImage) -> PixelEmbeddings {
-    let regions = if encoder.needs_regions() {
-        images::rectangular_regions(image.width(), image.height())
+    let regions = regions_for(encoder, image);
+    let result = if encoder.needs_labels() {
+        let labels = images::synthetic_labels(image.width(), image.height());
+        encoder.encode_frame(&images::frame_of(image, Some(labels)), &regions)
     } else {
-        Vec::new()
+        encoder.encode_image(image, &regions)
     };
-    match encoder.encode_image(image, &regions) {
+    match result {
         Ok(e) => e,
         Err(e) => panic!(
             "encoder `{}` failed on the {}x{} {label} image: {e}",
@@ -295,6 +333,15 @@ pub fn encode(encoder: &dyn Encoder, label: &str, image: &RgbImage) -> PixelEmbe
             image.width(),
             image.height()
         ),
+    }
+}
+
+/// The regions the suite passes: [`images::rectangular_regions`] if the encoder needs regions.
+fn regions_for(encoder: &dyn Encoder, image: &RgbImage) -> Vec<vlem_core::Region> {
+    if encoder.needs_regions() {
+        images::rectangular_regions(image.width(), image.height())
+    } else {
+        Vec::new()
     }
 }
 

@@ -6,7 +6,11 @@
 
 use rand::rngs::StdRng;
 use rand::{Rng, SeedableRng};
-use vlem_core::{PixelRect, Region, RgbImage};
+use std::sync::Arc;
+
+use vlem_core::{
+    DepthImage, Frame, Intrinsics, LabelImage, LabelNames, PixelRect, Region, RgbImage,
+};
 
 /// Image sizes every suite runs: a small one and the 640x480 of common RGB-D sensors.
 pub const SIZES: [(u32, u32); 2] = [(64, 48), (640, 480)];
@@ -78,6 +82,75 @@ pub fn rectangular_regions(width: u32, height: u32) -> Vec<Region> {
     .collect()
 }
 
+/// Class names of [`synthetic_labels`]: NYU40 ids and names of a few common classes. Id 9 is
+/// deliberately left out: it occurs in the label images but has no name.
+pub const LABEL_NAMES: [(u16, &str); 4] = [(1, "wall"), (2, "floor"), (5, "chair"), (6, "sofa")];
+
+/// A class id that [`synthetic_labels`] uses but [`LABEL_NAMES`] does not name: encoders treat
+/// its pixels like unlabelled ones.
+pub const UNNAMED_LABEL: u16 = 9;
+
+/// Ground-truth labels for label-driven encoders: the top half is "wall" (id 1), the bottom half
+/// "floor" (id 2); a centred box of half the width and height is "chair" (id 5) on its left and
+/// "sofa" (id 6) on its right; the leftmost eighth of the columns is unlabelled (id 0) and the
+/// bottom-right corner eighth of each axis has the unnamed id [`UNNAMED_LABEL`].
+pub fn synthetic_labels(width: u32, height: u32) -> LabelImage {
+    let names = Arc::new(LabelNames::new(
+        LABEL_NAMES.iter().map(|&(id, name)| (id, name.to_owned())),
+    ));
+    let mut ids = Vec::with_capacity(width as usize * height as usize);
+    for v in 0..height {
+        for u in 0..width {
+            let (x, y) = (
+                f64::from(u) / f64::from(width),
+                f64::from(v) / f64::from(height),
+            );
+            let id = if x < 0.125 {
+                0
+            } else if x >= 0.875 && y >= 0.875 {
+                UNNAMED_LABEL
+            } else if (0.25..0.75).contains(&x) && (0.25..0.75).contains(&y) {
+                if x < 0.5 { 5 } else { 6 }
+            } else if y < 0.5 {
+                1
+            } else {
+                2
+            };
+            ids.push(id);
+        }
+    }
+    expect_valid(LabelImage::new(width, height, ids, names))
+}
+
+/// A frame around `image`: constant depth (2 m), pinhole intrinsics of the image's size, no pose,
+/// and `labels` if given (which must have the image's size).
+pub fn frame_of(image: &RgbImage, labels: Option<LabelImage>) -> Frame {
+    let (w, h) = (image.width(), image.height());
+    let depth = expect_valid(DepthImage::new(w, h, vec![2.0; w as usize * h as usize]));
+    let f = 525.0 * f64::from(w) / 640.0;
+    let intrinsics = expect_valid(Intrinsics::new(
+        w,
+        h,
+        f,
+        f,
+        (f64::from(w) - 1.0) / 2.0,
+        (f64::from(h) - 1.0) / 2.0,
+    ));
+    let frame = expect_valid(Frame::new(0, 0.0, image.clone(), depth, intrinsics, None));
+    match labels {
+        Some(labels) => expect_valid(frame.with_labels(labels)),
+        None => frame,
+    }
+}
+
+#[allow(
+    clippy::expect_used,
+    reason = "the generators above build consistent sizes, so construction cannot fail"
+)]
+fn expect_valid<T>(r: vlem_core::Result<T>) -> T {
+    r.expect("test input is consistent")
+}
+
 /// A pixel grid of about `per_axis x per_axis` samples including the image corners, for checks that
 /// look at pixels one by one (checking all 307 200 pixels of a 640x480 image is needlessly slow).
 pub fn sample_pixels(width: u32, height: u32, per_axis: u32) -> Vec<(u32, u32)> {
@@ -130,6 +203,23 @@ mod tests {
                 assert!(r.bbox.x + r.bbox.width <= w && r.bbox.y + r.bbox.height <= h);
                 assert_eq!(r.area(), r.mask.len());
             }
+        }
+    }
+
+    #[test]
+    fn synthetic_labels_have_every_kind_of_pixel() {
+        for (w, h) in SIZES {
+            let labels = synthetic_labels(w, h);
+            for id in [0, 1, 2, 5, 6, UNNAMED_LABEL] {
+                assert!(
+                    labels.ids().contains(&id),
+                    "{w}x{h}: no pixel of class {id}"
+                );
+            }
+            assert_eq!(labels.names().name(5), Some("chair"));
+            assert_eq!(labels.names().name(UNNAMED_LABEL), None);
+            let frame = frame_of(&gradient(w, h), Some(labels));
+            assert!(frame.labels.is_some());
         }
     }
 

