@@ -112,6 +112,30 @@ pub enum EvalError {
         /// Its position in the list given.
         index: usize,
     },
+    /// A dataset whose frames carry no label images, evaluated for semantic segmentation.
+    #[error(
+        "{dataset} has no ground-truth labels: use a labelled dataset (kind = \"synthetic\", or a \
+         folder with label/ and labels.json)"
+    )]
+    MissingLabels {
+        /// The dataset as its reader describes it.
+        dataset: String,
+    },
+    /// A frame without a pose where the ground truth needs one.
+    #[error(
+        "frame {frame} of {dataset} has no pose: the 3D ground truth is built from the dataset's \
+         poses"
+    )]
+    MissingPose {
+        /// The frame index.
+        frame: usize,
+        /// The dataset as its reader describes it.
+        dataset: String,
+    },
+    /// An error of vlem-core (reading a frame, a dimension mismatch between text and map
+    /// embeddings, …); its message says what failed.
+    #[error(transparent)]
+    Core(#[from] vlem_core::CoreError),
     /// Input that has no unique answer (e.g. a scale for positions that all coincide).
     #[error("cannot compute {what}: {reason}")]
     Degenerate {
