@@ -3,6 +3,9 @@
 mod eval;
 mod output;
 mod plugins;
+mod soak;
+mod study;
+mod study_plot;
 
 use std::path::{Path, PathBuf};
 use std::sync::atomic::{AtomicUsize, Ordering};
@@ -91,6 +94,12 @@ enum Command {
     },
     /// List every registered implementation per stage.
     Plugins,
+    /// Soak test: map many synthetic frames under a small map budget and check that resident
+    /// memory stays flat; writes OUT/soak.json and OUT/soak-samples.csv.
+    Soak(soak::SoakArgs),
+    /// Run a comparison study (maps × encoders × trackers × sequences): one `vlem run` and one
+    /// `vlem eval semseg3d` per cell, then OUT/study.csv and a plot of mIoU against memory.
+    Study(study::StudyArgs),
     /// Run the embedded default: the committed living-room frames, pseudo ground-truth poses, the
     /// point-cloud map, the colour-names encoder and two queries.
     Demo {
@@ -171,6 +180,8 @@ fn execute(command: Command) -> Result<()> {
         ),
         Command::Eval { command } => eval::execute(command),
         Command::Plugins => list_plugins(),
+        Command::Soak(args) => soak::execute(&args),
+        Command::Study(args) => study::execute(&args),
         Command::Demo { out } => {
             let config = Config::from_toml(DEMO_CONFIG)
                 .map_err(|message| anyhow::anyhow!("embedded demo config: {message}"))?;
