@@ -14,11 +14,17 @@
 //! | 4 | CRC-32 (IEEE) of every byte before it |
 //!
 //! Writing goes to a temporary file in the same directory, which is synced and then renamed over
-//! the target, so a crash leaves either the old file or the new one, never a torn one.
+//! the target, so a crash leaves either the old file or the new one, never a torn one. The
+//! temporary file's name is unique (process id, a per-process counter and the clock) and it is
+//! created exclusively (`O_EXCL`), so concurrent saves to one path, from threads or processes,
+//! never write into each other's temporary file; a temporary file left behind by a killed save is
+//! never reused. The last complete save wins the rename.
 
-use std::fs::File;
+use std::fs::{File, OpenOptions};
 use std::io::{BufWriter, Write};
 use std::path::{Path, PathBuf};
+use std::sync::atomic::{AtomicU64, Ordering};
+use std::time::{SystemTime, UNIX_EPOCH};
 
 use serde::{Deserialize, Serialize};
 
@@ -138,8 +144,8 @@ pub fn write_map_file(path: &Path, snapshot: &MapSnapshot) -> Result<u64> {
         .file_name()
         .map(|n| n.to_string_lossy().into_owned())
         .unwrap_or_else(|| "map.vlem".into());
-    let tmp = dir.join(format!(".{file_name}.tmp-{}", std::process::id()));
-    let result = write_to(&tmp, snapshot).and_then(|size| {
+    let (tmp, file) = create_temp_file(&dir, &file_name)?;
+    let result = write_to(&tmp, file, snapshot).and_then(|size| {
         std::fs::rename(&tmp, path).map_err(|e| CoreError::io(path, e))?;
         // Make the rename itself durable; not every platform can open a directory.
         if let Ok(d) = File::open(&dir) {
@@ -153,7 +159,38 @@ pub fn write_map_file(path: &Path, snapshot: &MapSnapshot) -> Result<u64> {
     result
 }
 
-fn write_to(tmp: &Path, snapshot: &MapSnapshot) -> Result<u64> {
+/// Saves started by this process (part of the temporary file names).
+static SAVES: AtomicU64 = AtomicU64::new(0);
+
+/// Creates a new, exclusively owned temporary file `.<file_name>.tmp-<pid>-<n>-<clock>` in `dir`.
+/// The name differs between threads (counter) and processes (pid; the clock and `O_EXCL` cover
+/// processes of other pid namespaces sharing the directory), and a name that exists already,
+/// e.g. left by a killed save, is skipped rather than reused.
+fn create_temp_file(dir: &Path, file_name: &str) -> Result<(PathBuf, File)> {
+    let pid = std::process::id();
+    let mut last = None;
+    for _ in 0..64 {
+        let n = SAVES.fetch_add(1, Ordering::Relaxed);
+        let clock = SystemTime::now()
+            .duration_since(UNIX_EPOCH)
+            .map_or(0, |d| d.as_nanos() as u64);
+        let tmp = dir.join(format!(".{file_name}.tmp-{pid}-{n}-{clock:x}"));
+        match OpenOptions::new().write(true).create_new(true).open(&tmp) {
+            Ok(file) => return Ok((tmp, file)),
+            Err(e) if e.kind() == std::io::ErrorKind::AlreadyExists => last = Some((tmp, e)),
+            Err(e) => return Err(CoreError::io(&tmp, e)),
+        }
+    }
+    let (tmp, e) = last.unwrap_or_else(|| {
+        (
+            dir.join(file_name),
+            std::io::Error::from(std::io::ErrorKind::AlreadyExists),
+        )
+    });
+    Err(CoreError::io(&tmp, e))
+}
+
+fn write_to(tmp: &Path, file: File, snapshot: &MapSnapshot) -> Result<u64> {
     let io = |e| CoreError::io(tmp, e);
     let header = Header {
         map_kind: snapshot.map_kind.clone(),
@@ -170,7 +207,6 @@ fn write_to(tmp: &Path, snapshot: &MapSnapshot) -> Result<u64> {
         path: tmp.to_path_buf(),
         reason: "header larger than 4 GiB".into(),
     })?;
-    let file = File::create(tmp).map_err(io)?;
     let mut w = Checksummed {
         inner: BufWriter::with_capacity(1 << 20, file),
         crc: crc32fast::Hasher::new(),
@@ -213,14 +249,30 @@ fn write_to(tmp: &Path, snapshot: &MapSnapshot) -> Result<u64> {
 /// Reads a map file written by [`write_map_file`].
 ///
 /// # Errors
-/// [`CoreError::MapFile`] for a foreign file (bad magic), a newer format version, a truncated or
-/// over-long file, a checksum mismatch or a malformed header; [`CoreError::Io`] when unreadable.
+/// [`CoreError::Io`] when unreadable, and those of [`map_file_from_bytes`].
 pub fn read_map_file(path: &Path) -> Result<MapSnapshot> {
     let bytes = std::fs::read(path).map_err(|e| CoreError::io(path, e))?;
+    map_file_from_bytes(&bytes, path)
+}
+
+/// Parses the bytes of a map file written by [`write_map_file`]; `path` is the file they came
+/// from, as errors name it. Nothing is allocated beyond what the bytes hold: the point count and
+/// dimension of the header must match the length of the bytes before any array is built.
+///
+/// # Errors
+/// [`CoreError::MapFile`] for a foreign file (bad magic), a newer format version, a truncated or
+/// over-long file, a checksum mismatch or a malformed header.
+pub fn map_file_from_bytes(bytes: &[u8], path: &Path) -> Result<MapSnapshot> {
     let fail = |reason: String| CoreError::MapFile {
         path: path.to_path_buf(),
         reason,
     };
+    if bytes.len() < MAGIC.len() && MAGIC.starts_with(bytes) {
+        return Err(fail(format!(
+            "truncated: {} bytes, shorter than the file prefix",
+            bytes.len()
+        )));
+    }
     if bytes.len() < MAGIC.len() || &bytes[..MAGIC.len()] != MAGIC {
         return Err(fail("not a vlem map file (wrong magic bytes)".into()));
     }
@@ -232,8 +284,22 @@ pub fn read_map_file(path: &Path) -> Result<MapSnapshot> {
     }
     let word =
         |at: usize| u32::from_le_bytes([bytes[at], bytes[at + 1], bytes[at + 2], bytes[at + 3]]);
+    // Whether the trailing CRC matches: a prefix field that reads wrong in a file that fails it
+    // is corruption, reported as such rather than as what the damaged field seems to say.
+    let intact = bytes.len() >= PREFIX_LEN + 4 && {
+        let end = bytes.len() - 4;
+        word(end) == crc32fast::hash(&bytes[..end])
+    };
+    let corrupted = |field: &str| {
+        fail(format!(
+            "checksum mismatch with an unreadable {field}: the file is corrupted or truncated"
+        ))
+    };
     let version = word(8);
     if version != FORMAT_VERSION {
+        if !intact {
+            return Err(corrupted(&format!("format version ({version})")));
+        }
         return Err(fail(format!(
             "format version {version}, this build of vlem reads version {FORMAT_VERSION}"
         )));
@@ -247,9 +313,15 @@ pub fn read_map_file(path: &Path) -> Result<MapSnapshot> {
             header_end + 4
         )));
     }
-    let header: Header = serde_json::from_slice(&bytes[PREFIX_LEN..header_end])
-        .map_err(|e| fail(format!("malformed header: {e}")))?;
+    let header: Header = match serde_json::from_slice(&bytes[PREFIX_LEN..header_end]) {
+        Ok(header) => header,
+        Err(_) if !intact => return Err(corrupted("header")),
+        Err(e) => return Err(fail(format!("malformed header: {e}"))),
+    };
     if header.embedding_type != "f32" {
+        if !intact {
+            return Err(corrupted("header"));
+        }
         return Err(fail(format!(
             "unknown embedding type `{}`",
             header.embedding_type
@@ -257,11 +329,12 @@ pub fn read_map_file(path: &Path) -> Result<MapSnapshot> {
     }
     let n = usize::try_from(header.points).map_err(|_| fail("point count overflows".into()))?;
     let dim = usize::try_from(header.dim).map_err(|_| fail("dimension overflows".into()))?;
-    let payload = n
+    // Header, payload (positions, colours, embeddings) and CRC.
+    let expected = n
         .checked_mul(12 + 3)
         .and_then(|a| n.checked_mul(dim)?.checked_mul(4)?.checked_add(a))
+        .and_then(|payload| payload.checked_add(header_end + 4))
         .ok_or_else(|| fail("point count and dimension overflow".into()))?;
-    let expected = header_end + payload + 4;
     if bytes.len() != expected {
         let what = if bytes.len() < expected {
             "truncated"
@@ -367,14 +440,71 @@ mod tests {
             "{err}"
         );
 
-        let mut newer = good;
+        // A file of a newer format (intact: its checksum matches) names the version...
+        let mut newer = good.clone();
         newer[8] = 9;
+        let end = newer.len() - 4;
+        let crc = crc32fast::hash(&newer[..end]);
+        newer[end..].copy_from_slice(&crc.to_le_bytes());
         std::fs::write(&path, &newer).unwrap();
         let err = read_map_file(&path).unwrap_err().to_string();
         assert!(
             err.contains("format version 9, this build of vlem reads version 1"),
             "{err}"
         );
+        // ...a damaged version field or header is corruption, not a newer format.
+        let mut damaged = good.clone();
+        damaged[8] = 9;
+        std::fs::write(&path, &damaged).unwrap();
+        let err = read_map_file(&path).unwrap_err().to_string();
+        assert!(
+            err.contains("checksum mismatch") && err.contains("corrupted"),
+            "{err}"
+        );
+        let mut damaged = good.clone();
+        damaged[PREFIX_LEN] = b'[';
+        std::fs::write(&path, &damaged).unwrap();
+        let err = read_map_file(&path).unwrap_err().to_string();
+        assert!(
+            err.contains("checksum mismatch with an unreadable header"),
+            "{err}"
+        );
+
+        // A file cut inside the magic bytes (or empty) is truncated, not foreign.
+        for cut in [0, 5] {
+            std::fs::write(&path, &good[..cut]).unwrap();
+            let err = read_map_file(&path).unwrap_err().to_string();
+            assert!(err.contains(&format!("truncated: {cut} bytes")), "{err}");
+        }
+    }
+
+    #[test]
+    fn concurrent_saves_in_one_process_use_distinct_temporary_files() {
+        let dir = tempfile::tempdir().unwrap();
+        let path = dir.path().join("map.vlem");
+        std::thread::scope(|s| {
+            for _ in 0..4 {
+                s.spawn(|| {
+                    for _ in 0..25 {
+                        write_map_file(&path, &sample()).unwrap();
+                    }
+                });
+            }
+        });
+        assert_eq!(read_map_file(&path).unwrap(), sample());
+        assert_eq!(std::fs::read_dir(dir.path()).unwrap().count(), 1);
+    }
+
+    #[test]
+    fn a_leftover_temporary_file_is_neither_reused_nor_an_obstacle() {
+        let dir = tempfile::tempdir().unwrap();
+        let path = dir.path().join("map.vlem");
+        // What a save killed in this process (same pid) would have left.
+        let (tmp, _file) = create_temp_file(dir.path(), "map.vlem").unwrap();
+        std::fs::write(&tmp, b"half a map").unwrap();
+        write_map_file(&path, &sample()).unwrap();
+        assert_eq!(read_map_file(&path).unwrap(), sample());
+        assert_eq!(std::fs::read(&tmp).unwrap(), b"half a map");
     }
 
     #[test]

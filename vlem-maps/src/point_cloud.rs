@@ -14,6 +14,8 @@
 //! Storage is struct-of-arrays: positions, colours and one contiguous `len x dim` embedding table,
 //! so a text query is a single pass over memory.
 
+use std::sync::atomic::{AtomicBool, Ordering};
+
 use kiddo::{ImmutableKdTree, SquaredEuclidean};
 use rayon::prelude::*;
 use serde::Deserialize;
@@ -324,54 +326,110 @@ impl PointCloudMap {
             let start = self.embeddings.rows();
             self.embeddings.grow(fresh.len());
             let width = obs.frame.depth.width();
+            let missing = AtomicBool::new(false);
             self.embeddings.par_update_rows_with(
                 start,
                 || vec![0.0f32; dim],
                 |scratch, row_index, row| {
                     let pixel = new.pixels[fresh[row_index - start]];
-                    // Every observed pixel has an embedding (`observe` filters on it).
+                    // `observe` keeps pixels that have an embedding, but a patch grid's
+                    // interpolation can still cancel out (or overflow): that row stays zero.
                     match lookup(embeddings, pixel, width, &mut scratch[..]) {
                         Some(e) => {
                             row.copy_from_slice(e);
                             true
                         }
-                        None => false,
+                        None => {
+                            missing.store(true, Ordering::Relaxed);
+                            false
+                        }
                     }
                 },
             );
+            if missing.into_inner() {
+                return fresh.len() - self.drop_zero_rows(start);
+            }
         }
         fresh.len()
     }
 
+    /// Removes the points from `start` on whose embedding row is zero (no embedding could be
+    /// looked up), keeping the order of the others. Returns the number removed.
+    fn drop_zero_rows(&mut self, start: usize) -> usize {
+        let before = self.positions.len();
+        let mut row = vec![0.0f32; self.dim];
+        let mut kept = start;
+        for i in start..before {
+            self.embeddings.row_into(i, &mut row);
+            if row.iter().all(|x| *x == 0.0) {
+                continue;
+            }
+            if kept != i {
+                self.positions[kept] = self.positions[i];
+                self.colours[kept] = self.colours[i];
+                self.embeddings.set_row(kept, &row);
+            }
+            kept += 1;
+        }
+        self.positions.truncate(kept);
+        self.colours.truncate(kept);
+        self.embeddings.truncate(kept);
+        before - kept
+    }
+
     /// Merges points per voxel, with the finest voxel size (within 5 %) that meets the budget.
     /// Returns the number of points removed.
+    ///
+    /// The voxel grid is anchored at the corner of the points' bounding box, so a voxel as large
+    /// as the box holds every point and the search always ends (a grid anchored at the origin
+    /// keeps points on either side of a coordinate plane apart at every size, so a budget below
+    /// the number of occupied octants could never be met). The finest size tried keeps the voxel
+    /// coordinates of the box within the key's 21 bits per axis, so distant points never share a
+    /// voxel through clamping.
     fn enforce_budget(&mut self, footprint: f32) -> usize {
         let budget = self.config.max_points;
         let before = self.positions.len();
         if before <= budget {
             return 0;
         }
+        let (origin, extent) = bounding_box(&self.positions);
         // Never finer than the density already established (the map's density only falls), and
         // not much finer than this frame's pixel footprint (finer voxels would merge nothing).
-        let mut lo = self.voxel_size.max(footprint * 0.25).max(1e-4);
-        let mut groups = VoxelGroups::new(&self.positions, lo);
+        let mut lo = self
+            .voxel_size
+            .max(footprint * 0.25)
+            .max(1e-4)
+            .max(extent / KEY_AXIS_VOXELS);
+        let mut groups = VoxelGroups::new(&self.positions, lo, origin);
         if groups.count > budget {
-            // Grow until the budget holds; on surfaces the count falls with the voxel area.
+            // Grow until the budget holds; on surfaces the count falls with the voxel area. At
+            // the latest a voxel larger than the bounding box holds everything in one.
             let mut hi = lo;
             let found = loop {
                 hi *= (groups.count as f32 / budget as f32).sqrt().max(1.1);
-                let g = VoxelGroups::new(&self.positions, hi);
+                if !hi.is_finite() {
+                    break None;
+                }
+                let g = VoxelGroups::new(&self.positions, hi, origin);
                 if g.count <= budget {
-                    break g;
+                    break Some(g);
                 }
                 lo = hi;
                 groups = g;
+            };
+            let Some(found) = found else {
+                // Only for a bounding box beyond f32 (positions near f32::MAX): keep the budget.
+                self.voxel_size = lo;
+                self.positions.truncate(budget);
+                self.colours.truncate(budget);
+                self.embeddings.truncate(budget);
+                return before - budget;
             };
             // Bisect geometrically between the last size that failed and the first that held.
             groups = found;
             while hi / lo > 1.05 {
                 let mid = (lo * hi).sqrt();
-                let g = VoxelGroups::new(&self.positions, mid);
+                let g = VoxelGroups::new(&self.positions, mid, origin);
                 if g.count <= budget {
                     hi = mid;
                     groups = g;
@@ -465,11 +523,11 @@ struct VoxelGroups {
 }
 
 impl VoxelGroups {
-    fn new(positions: &[[f32; 3]], voxel: f32) -> Self {
+    fn new(positions: &[[f32; 3]], voxel: f32, origin: [f32; 3]) -> Self {
         let mut keyed: Vec<(u64, u32)> = positions
             .par_iter()
             .enumerate()
-            .map(|(i, p)| (voxel_key(p, voxel), i as u32))
+            .map(|(i, p)| (voxel_key(p, voxel, origin), i as u32))
             .collect();
         keyed.par_sort_unstable();
         let count = if keyed.is_empty() {
@@ -501,12 +559,31 @@ fn lookup<'a>(
     }
 }
 
-/// Packs the voxel coordinates of `p` (21 bits per axis, about ±1 km at 1 mm voxels).
-fn voxel_key(p: &[f32; 3], voxel: f32) -> u64 {
-    const OFFSET: i64 = 1 << 20;
+/// Voxels per axis that [`voxel_key`] tells apart.
+const KEY_AXIS_VOXELS: f32 = ((1u32 << 21) - 1) as f32;
+
+/// The corner (per-axis minimum) and the largest side of the bounding box of `positions`.
+fn bounding_box(positions: &[[f32; 3]]) -> ([f32; 3], f32) {
+    let (mut lo, mut hi) = ([f32::INFINITY; 3], [f32::NEG_INFINITY; 3]);
+    for p in positions {
+        for k in 0..3 {
+            lo[k] = lo[k].min(p[k]);
+            hi[k] = hi[k].max(p[k]);
+        }
+    }
+    if positions.is_empty() {
+        return ([0.0; 3], 0.0);
+    }
+    let extent = (0..3).map(|k| hi[k] - lo[k]).fold(0.0f32, f32::max);
+    (lo, extent)
+}
+
+/// Packs the voxel coordinates of `p` relative to `origin` (21 bits per axis, about 2 km at 1 mm
+/// voxels; [`PointCloudMap::enforce_budget`] picks voxels that keep the map within that range).
+fn voxel_key(p: &[f32; 3], voxel: f32, origin: [f32; 3]) -> u64 {
     const MASK: i64 = (1 << 21) - 1;
-    let axis = |x: f32| (((x / voxel).floor() as i64 + OFFSET).clamp(0, MASK)) as u64;
-    (axis(p[0]) << 42) | (axis(p[1]) << 21) | axis(p[2])
+    let axis = |k: usize| (((p[k] - origin[k]) / voxel).floor() as i64).clamp(0, MASK) as u64;
+    (axis(0) << 42) | (axis(1) << 21) | axis(2)
 }
 
 impl EmbeddingMap for PointCloudMap {

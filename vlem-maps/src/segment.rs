@@ -22,7 +22,9 @@
 //!    segments observed least recently (then the smallest, then the oldest) are removed. Segments
 //!    seen in the current frame are never evicted: if they alone exceed the budget, the grid is
 //!    coarsened instead (spacing doubled, cells merged, a merged cell keeping its first owner) and
-//!    the coarser spacing is kept for later frames, like the point-cloud map's voxel size.
+//!    the coarser spacing is kept for later frames, like the point-cloud map's voxel size. Only a
+//!    budget below the number of octants the frame's cells occupy, which no coarsening of a grid
+//!    anchored at the origin can meet, evicts segments of the current frame (the smallest first).
 //!
 //! Only segments that own an observed cell change: a matched segment's embedding changes for all
 //! its cells, including those out of view, as in Open-Fusion; segments not seen are untouched.
@@ -40,7 +42,9 @@ use vlem_core::{
     PixelEmbeddings, RigidF32, StageKind, parse_params,
 };
 
-use crate::common::{check_observation, check_snapshot, invalid_parameter, resolve_dim};
+use crate::common::{
+    btree_bytes, check_observation, check_snapshot, hash_buckets, invalid_parameter, resolve_dim,
+};
 use crate::error::MapError;
 use crate::storage::{EmbeddingStore, Precision, fuse_into};
 
@@ -225,6 +229,9 @@ pub struct SegmentMap {
     segments: BTreeMap<u64, Segment>,
     /// The owner of every cell.
     owner: HashMap<CellKey, u64>,
+    /// The largest `owner.capacity()` seen after insertions: the table's bucket capacity (removals
+    /// leave tombstones that lower `capacity()` without freeing anything).
+    owner_capacity: usize,
     /// One embedding row per segment.
     embeddings: EmbeddingStore,
     /// The segment id of every store row (to fix up rows moved by `swap_remove`).
@@ -243,6 +250,7 @@ impl SegmentMap {
             dim,
             segments: BTreeMap::new(),
             owner: HashMap::new(),
+            owner_capacity: 0,
             row_ids: Vec::new(),
             next_id: 0,
             frames: 0,
@@ -480,9 +488,35 @@ impl SegmentMap {
             self.remove_segment(id);
         }
         while self.owner.len() > budget {
-            self.coarsen();
+            // The grid is anchored at the origin, so coarsening never merges cells on opposite
+            // sides of a coordinate plane: once a cell is larger than every coordinate, it cannot
+            // reduce the count any further (and doubling on would overflow the cell centres to
+            // infinity). Only a budget below the number of occupied octants gets here: the
+            // smallest (then oldest) segments seen in this frame go.
+            if self.spacing > self.max_abs_coordinate() {
+                let smallest = self
+                    .segments
+                    .iter()
+                    .min_by_key(|(id, s)| (s.cells.len(), **id))
+                    .map(|(id, _)| *id);
+                match smallest {
+                    Some(id) => self.remove_segment(id),
+                    None => break,
+                }
+            } else {
+                self.coarsen();
+            }
         }
         before - self.owner.len()
+    }
+
+    /// The largest absolute coordinate of any cell position (0 for an empty map).
+    fn max_abs_coordinate(&self) -> f32 {
+        self.segments
+            .values()
+            .flat_map(|s| s.cells.values())
+            .flat_map(|c| c.position)
+            .fold(0.0f32, |m, x| m.max(x.abs()))
     }
 
     /// Doubles the grid spacing: cells are merged into the coarser cell (mean colour, position at
@@ -745,6 +779,7 @@ impl EmbeddingMap for SegmentMap {
             };
             self.add_segment(&s2d.embedding, segment);
         }
+        self.owner_capacity = self.owner_capacity.max(self.owner.capacity());
         stats.removed = self.enforce_budget(now);
         Ok(stats)
     }
@@ -755,15 +790,16 @@ impl EmbeddingMap for SegmentMap {
 
     fn memory_bytes(&self) -> usize {
         use std::mem::size_of;
-        // Hash map: one control byte per bucket besides the entry; B-tree nodes are counted by
-        // their entries (node overhead is small next to them).
-        let owner = self.owner.capacity() * (size_of::<(CellKey, u64)>() + 1);
+        // Hash map: its buckets (see `hash_buckets`); B-trees: their nodes, a lower bound (see
+        // `btree_bytes`), so the report is at most ~1.5x below the heap for tiny segments.
+        let buckets = hash_buckets(self.owner_capacity.max(self.owner.capacity()));
+        let owner = buckets * (size_of::<(CellKey, u64)>() + 1);
         let cells: usize = self
             .segments
             .values()
-            .map(|s| s.cells.len() * (size_of::<CellKey>() + size_of::<Cell>()))
+            .map(|s| btree_bytes(s.cells.len(), size_of::<CellKey>() + size_of::<Cell>()))
             .sum();
-        let segments = self.segments.len() * (size_of::<u64>() + size_of::<Segment>());
+        let segments = btree_bytes(self.segments.len(), size_of::<u64>() + size_of::<Segment>());
         self.embeddings.memory_bytes()
             + self.row_ids.capacity() * size_of::<u64>()
             + owner
@@ -848,6 +884,7 @@ impl EmbeddingMap for SegmentMap {
         if let Some((first, cells, _)) = current.take() {
             self.restore_segment(row_of(first), cells, now);
         }
+        self.owner_capacity = self.owner_capacity.max(self.owner.capacity());
         let _ = self.enforce_budget(now);
         Ok(())
     }

@@ -33,7 +33,9 @@ use vlem_core::{
     PixelEmbeddings, RgbImage, RigidF32, StageKind, parse_params,
 };
 
-use crate::common::{check_observation, check_snapshot, invalid_parameter, resolve_dim};
+use crate::common::{
+    check_observation, check_snapshot, hash_buckets, invalid_parameter, resolve_dim,
+};
 use crate::error::MapError;
 use crate::storage::{EmbeddingStore, Precision};
 
@@ -219,6 +221,10 @@ pub struct VoxelMap {
     config: VoxelConfig,
     dim: usize,
     index: VoxelIndex,
+    /// The largest `index.capacity()` seen: the table's bucket capacity. Removals leave
+    /// tombstones that lower `capacity()` without freeing anything, so the current value
+    /// under-reports the allocation after evictions.
+    index_capacity: usize,
     keys: Vec<VoxelKey>,
     colours: Vec<[u8; 3]>,
     /// Observations (pixels) per voxel, at most `max_observations`.
@@ -334,6 +340,7 @@ impl VoxelMap {
             config,
             dim,
             index: VoxelIndex::default(),
+            index_capacity: 0,
             keys: Vec::new(),
             colours: Vec::new(),
             counts: Vec::new(),
@@ -535,6 +542,8 @@ impl VoxelMap {
     fn push(&mut self, key: VoxelKey, colour: [u8; 3], count: u32, stamp: u32, row: &[f32]) {
         // The budget check keeps the count far below u32::MAX.
         self.index.insert(key, self.keys.len() as u32);
+        // Right after an insertion that grew the table there are no tombstones: the full capacity.
+        self.index_capacity = self.index_capacity.max(self.index.capacity());
         self.keys.push(key);
         self.colours.push(colour);
         self.counts.push(count);
@@ -649,8 +658,9 @@ impl EmbeddingMap for VoxelMap {
 
     fn memory_bytes(&self) -> usize {
         use std::mem::size_of;
-        // The hash map: one key, one value and one control byte per slot.
-        let table = self.index.capacity() * (size_of::<VoxelKey>() + size_of::<u32>() + 1);
+        // The hash map: one key, one value and one control byte per bucket.
+        let buckets = hash_buckets(self.index_capacity.max(self.index.capacity()));
+        let table = buckets * (size_of::<(VoxelKey, u32)>() + 1);
         self.embeddings.memory_bytes()
             + self.keys.capacity() * size_of::<VoxelKey>()
             + self.colours.capacity() * 3

@@ -7,7 +7,10 @@
 //!
 //! - [`encoder_conformance!`]: for [`vlem_core::Encoder`] implementations.
 //! - [`map_conformance!`]: for [`vlem_core::EmbeddingMap`] implementations.
+//! - [`map_properties!`]: property tests (arbitrary frame sequences) for [`vlem_core::EmbeddingMap`]
+//!   implementations.
 
 pub mod encoder;
 pub mod images;
 pub mod map;
+pub mod properties;
