@@ -450,6 +450,31 @@ fn scores_json(
     m
 }
 
+/// Adds what every semseg report ends with (encoder, dataset, peak memory, seconds) and writes it
+/// where `--json` says.
+fn finish_report(
+    mut report: serde_json::Map<String, serde_json::Value>,
+    encoder: &str,
+    dataset: &str,
+    start: Instant,
+    json: Option<&Path>,
+) -> Result<()> {
+    report.insert("encoder".into(), serde_json::json!(encoder));
+    report.insert("dataset".into(), serde_json::json!(dataset));
+    report.insert(
+        "peak_resident_bytes".into(),
+        serde_json::json!(output::peak_resident_bytes()),
+    );
+    report.insert(
+        "seconds".into(),
+        serde_json::json!(start.elapsed().as_secs_f64()),
+    );
+    match json {
+        Some(path) => write_json(path, report),
+        None => Ok(()),
+    }
+}
+
 fn write_json(path: &Path, report: serde_json::Map<String, serde_json::Value>) -> Result<()> {
     let text = serde_json::to_string_pretty(&serde_json::Value::Object(report))
         .context("cannot encode the report")?;
@@ -594,20 +619,13 @@ fn evaluate_semseg3d(args: &Semseg3dArgs) -> Result<()> {
         "map_bytes".into(),
         serde_json::json!(snapshot.len() * (12 + 3 + 4 * snapshot.dim)),
     );
-    report.insert("encoder".into(), serde_json::json!(encoder.name()));
-    report.insert("dataset".into(), serde_json::json!(dataset));
-    report.insert(
-        "peak_resident_bytes".into(),
-        serde_json::json!(output::peak_resident_bytes()),
-    );
-    report.insert(
-        "seconds".into(),
-        serde_json::json!(start.elapsed().as_secs_f64()),
-    );
-    if let Some(path) = &common.json {
-        write_json(path, report)?;
-    }
-    Ok(())
+    finish_report(
+        report,
+        encoder.name(),
+        &dataset,
+        start,
+        common.json.as_deref(),
+    )
 }
 
 fn evaluate_semseg2d(args: &Semseg2dArgs) -> Result<()> {
@@ -683,20 +701,13 @@ fn evaluate_semseg2d(args: &Semseg2dArgs) -> Result<()> {
         "thresholds".into(),
         serde_json::json!(semseg::sweep::DEFAULT_THRESHOLD_STEPS + 1),
     );
-    report.insert("encoder".into(), serde_json::json!(encoder.name()));
-    report.insert("dataset".into(), serde_json::json!(dataset));
-    report.insert(
-        "peak_resident_bytes".into(),
-        serde_json::json!(output::peak_resident_bytes()),
-    );
-    report.insert(
-        "seconds".into(),
-        serde_json::json!(start.elapsed().as_secs_f64()),
-    );
-    if let Some(path) = &common.json {
-        write_json(path, report)?;
-    }
-    Ok(())
+    finish_report(
+        report,
+        encoder.name(),
+        &dataset,
+        start,
+        common.json.as_deref(),
+    )
 }
 
 /// "frame", "2nd frame", "30th frame": how a stride reads in a sentence.
