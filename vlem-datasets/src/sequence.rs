@@ -302,6 +302,29 @@ impl Sequence {
                 len: self.entries.len(),
             });
         };
+        // A depth image of another size than the camera is refused from its header, before it is
+        // decoded: a small compressed file can claim a size that takes gigabytes to decode.
+        let k = self.camera.intrinsics;
+        let header_size = images::dimensions(&entry.depth)?;
+        if header_size != (k.width, k.height) {
+            if self.colour_fit == ColourFit::SameSize {
+                let colour_size = images::dimensions(&entry.colour)?;
+                if colour_size != header_size {
+                    return Err(DatasetError::SizeMismatch {
+                        colour: entry.colour.clone(),
+                        colour_size,
+                        depth: entry.depth.clone(),
+                        depth_size: header_size,
+                    });
+                }
+            }
+            return Err(DatasetError::IntrinsicsMismatch {
+                image: entry.depth.clone(),
+                image_size: header_size,
+                origin: self.camera.origin.clone(),
+                intrinsics_size: (k.width, k.height),
+            });
+        }
         let depth = images::read_depth(&entry.depth, self.depth_scale)?;
         crate::depth_check::check_depth_scale(&depth, self.depth_scale, &entry.depth)?;
         let depth_size = (depth.width(), depth.height());
@@ -318,15 +341,6 @@ impl Sequence {
                 colour_size,
                 depth: entry.depth.clone(),
                 depth_size,
-            });
-        }
-        let k = self.camera.intrinsics;
-        if (k.width, k.height) != depth_size {
-            return Err(DatasetError::IntrinsicsMismatch {
-                image: entry.depth.clone(),
-                image_size: depth_size,
-                origin: self.camera.origin.clone(),
-                intrinsics_size: (k.width, k.height),
             });
         }
         let pose = match &entry.pose {

@@ -269,3 +269,36 @@ fn match_file_naming_a_missing_image() {
     );
     assert!(err.ends_with("rgbd.match line 1)"), "{err}");
 }
+
+#[test]
+fn a_depth_image_of_another_size_is_refused_from_its_header_before_decoding() {
+    let tmp = tempfile::tempdir().unwrap();
+    common::write_icl(tmp.path(), 0, 1, false);
+    let depth = tmp.path().join("depth/00000.png");
+    let huge = image::ImageBuffer::<image::Luma<u16>, Vec<u16>>::new(4000, 4000);
+    huge.save(&depth).unwrap();
+    // Keep the header, drop most of the pixel data: decoding would fail, reading the header not.
+    let bytes = std::fs::read(&depth).unwrap();
+    std::fs::write(&depth, &bytes[..200]).unwrap();
+    let reader = IclReader::open(tmp.path(), &DatasetConfig::default()).unwrap();
+    let err = reader.load(0).unwrap_err().to_string();
+    // The colour image still matches the camera, so the pair is what is inconsistent.
+    assert!(
+        err.ends_with(&format!(
+            "but depth image {} is 4000x4000; the two must be registered at the same resolution",
+            depth.display()
+        )),
+        "{err}"
+    );
+    // Colour of the same (wrong) size: then the camera is what disagrees.
+    let colour = tmp.path().join("color/00000.png");
+    image::RgbImage::new(4000, 4000).save(&colour).unwrap();
+    let err = reader.load(0).unwrap_err().to_string();
+    assert!(
+        err.starts_with(&format!(
+            "{} is 4000x4000 but the intrinsics",
+            depth.display()
+        )) && err.ends_with("are for 4x3"),
+        "{err}"
+    );
+}
