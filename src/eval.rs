@@ -306,34 +306,10 @@ struct Opened {
 
 fn open_dataset(common: &SemsegCommon) -> Result<Opened> {
     let path = &common.config;
-    let text = std::fs::read_to_string(path)
-        .with_context(|| format!("cannot read config {}", path.display()))?;
-    let mut config = Config::from_toml(&text)
-        .map_err(|message| anyhow::anyhow!("config {}: {message}", path.display()))?;
-    let dir = path
-        .parent()
-        .filter(|p| !p.as_os_str().is_empty())
-        .unwrap_or(Path::new("."));
-    let config_dir = dir
-        .canonicalize()
-        .with_context(|| format!("config folder {}", dir.display()))?;
-    let ctx = BuildContext {
-        config_dir: config_dir.clone(),
-        embedding_dim: None,
-    };
-    let synthetic = config.dataset.kind == vlem_core::config::DatasetKind::Synthetic;
-    let dataset_dir = match (&common.dataset, &config.dataset.path) {
-        (Some(dir), _) => dir.clone(),
-        (None, Some(path)) => ctx.resolve(path),
-        (None, None) if synthetic => config_dir.clone(),
-        (None, None) => bail!("no dataset: pass --dataset DIR or set [dataset] path in the config"),
-    };
-    if !synthetic && !dataset_dir.is_dir() {
-        bail!(
-            "dataset folder {} does not exist (pass --dataset DIR to use another one)",
-            dataset_dir.display()
-        );
-    }
+    let mut config = crate::read_config(path)?;
+    let ctx = crate::build_context(crate::config_folder(path))?;
+    let dataset_dir = crate::dataset_folder(&config, &ctx, common.dataset.as_deref())?;
+    let config_dir = ctx.config_dir;
     if common.max_frames.is_some() {
         config.dataset.max_frames = common.max_frames;
     }

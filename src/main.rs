@@ -144,20 +144,13 @@ fn execute(command: Command) -> Result<()> {
             max_frames,
             no_colour_model,
         } => {
-            let text = std::fs::read_to_string(&config)
-                .with_context(|| format!("cannot read config {}", config.display()))?;
-            let dir = config
-                .parent()
-                .filter(|p| !p.as_os_str().is_empty())
-                .unwrap_or(Path::new("."));
-            let parsed = Config::from_toml(&text)
-                .map_err(|message| anyhow::anyhow!("config {}: {message}", config.display()))?;
+            let parsed = read_config(&config)?;
             let options = RunOptions {
                 dataset,
                 max_frames,
                 colour_model: !no_colour_model,
             };
-            run(parsed, dir, &out, &options)
+            run(parsed, config_folder(&config), &out, &options)
         }
         Command::Query {
             map,
@@ -209,21 +202,40 @@ struct RunOptions {
     colour_model: bool,
 }
 
-fn run(mut config: Config, config_dir: &Path, out: &Path, options: &RunOptions) -> Result<()> {
-    let (dataset, max_frames) = (options.dataset.clone(), options.max_frames);
+/// Reads and parses a config file.
+fn read_config(path: &Path) -> Result<Config> {
+    let text = std::fs::read_to_string(path)
+        .with_context(|| format!("cannot read config {}", path.display()))?;
+    Config::from_toml(&text)
+        .map_err(|message| anyhow::anyhow!("config {}: {message}", path.display()))
+}
+
+/// The folder of a config file, against which its relative paths are resolved.
+fn config_folder(path: &Path) -> &Path {
+    path.parent()
+        .filter(|p| !p.as_os_str().is_empty())
+        .unwrap_or(Path::new("."))
+}
+
+/// The build context of a config in `config_dir` (made absolute, so paths resolve anywhere).
+fn build_context(config_dir: &Path) -> Result<BuildContext> {
     let config_dir = config_dir
         .canonicalize()
         .with_context(|| format!("config folder {}", config_dir.display()))?;
-    let ctx = BuildContext {
-        config_dir: config_dir.clone(),
+    Ok(BuildContext {
+        config_dir,
         embedding_dim: None,
-    };
+    })
+}
+
+/// The dataset folder: `--dataset`, else `[dataset] path`; a synthetic scene needs none.
+fn dataset_folder(config: &Config, ctx: &BuildContext, dataset: Option<&Path>) -> Result<PathBuf> {
     let synthetic = config.dataset.kind == vlem_core::config::DatasetKind::Synthetic;
     let dataset_dir = match (dataset, &config.dataset.path) {
-        (Some(dir), _) => dir,
+        (Some(dir), _) => dir.to_path_buf(),
         (None, Some(path)) => ctx.resolve(path),
         // A synthetic scene is generated from [dataset.synthetic]; it has no folder.
-        (None, None) if synthetic => config_dir.clone(),
+        (None, None) if synthetic => ctx.config_dir.clone(),
         (None, None) => bail!("no dataset: pass --dataset DIR or set [dataset] path in the config"),
     };
     if !synthetic && !dataset_dir.is_dir() {
@@ -232,6 +244,13 @@ fn run(mut config: Config, config_dir: &Path, out: &Path, options: &RunOptions) 
             dataset_dir.display()
         );
     }
+    Ok(dataset_dir)
+}
+
+fn run(mut config: Config, config_dir: &Path, out: &Path, options: &RunOptions) -> Result<()> {
+    let max_frames = options.max_frames;
+    let ctx = build_context(config_dir)?;
+    let dataset_dir = dataset_folder(&config, &ctx, options.dataset.as_deref())?;
     if max_frames.is_some() {
         config.dataset.max_frames = max_frames;
     }
@@ -304,7 +323,7 @@ fn run(mut config: Config, config_dir: &Path, out: &Path, options: &RunOptions) 
         let mut snap = map.snapshot();
         snap.metadata = MapMetadata {
             encoder: config.encoder.clone(),
-            config_dir: Some(config_dir.clone()),
+            config_dir: Some(ctx.config_dir.clone()),
             frames_integrated: snap.metadata.frames_integrated,
             vlem_version: env!("CARGO_PKG_VERSION").into(),
         };

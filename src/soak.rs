@@ -21,7 +21,7 @@ use anyhow::{Context, Result, bail};
 use indicatif::{ProgressBar, ProgressStyle};
 use vlem_core::config::{DatasetKind, SyntheticConfig};
 use vlem_core::pipeline::{Pipeline, Progress, RunReport};
-use vlem_core::{BuildContext, Config, EmbeddingMap, Frame, FrameSource, Intrinsics};
+use vlem_core::{Config, EmbeddingMap, Frame, FrameSource, Intrinsics};
 
 use crate::output;
 
@@ -187,10 +187,7 @@ pub fn execute(args: &SoakArgs) -> Result<()> {
         );
     }
     let path = &args.config;
-    let text = std::fs::read_to_string(path)
-        .with_context(|| format!("cannot read config {}", path.display()))?;
-    let mut config = Config::from_toml(&text)
-        .map_err(|message| anyhow::anyhow!("config {}: {message}", path.display()))?;
+    let mut config = crate::read_config(path)?;
     if config.dataset.kind != DatasetKind::Synthetic {
         bail!(
             "{}: vlem soak maps the synthetic scene, which has any number of frames: set \
@@ -209,18 +206,9 @@ pub fn execute(args: &SoakArgs) -> Result<()> {
         .frames = frames;
     config.dataset.synthetic = synthetic;
 
-    let config_dir = path
-        .parent()
-        .filter(|p| !p.as_os_str().is_empty())
-        .unwrap_or(Path::new("."))
-        .canonicalize()
-        .with_context(|| format!("config folder of {}", path.display()))?;
-    let ctx = BuildContext {
-        config_dir: config_dir.clone(),
-        embedding_dim: None,
-    };
+    let ctx = crate::build_context(crate::config_folder(path))?;
     let mut pipeline = Pipeline::from_config(&config, &ctx)?;
-    let mut source = vlem_datasets::open(&config.dataset, &config_dir)?;
+    let mut source = vlem_datasets::open(&config.dataset, &ctx.config_dir)?;
     std::fs::create_dir_all(&args.out)
         .with_context(|| format!("cannot create {}", args.out.display()))?;
     let total = source.len();
