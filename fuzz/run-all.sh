@@ -28,6 +28,9 @@ if ! cargo fuzz --version >/dev/null 2>&1; then
 fi
 
 export RUSTC_BOOTSTRAP=1
+# -O: build with fuzz/Cargo.toml's release profile instead of cargo fuzz's global debug assertions,
+# so overflow checks and debug assertions cover vlem's crates and not third-party decoders (whose
+# release builds wrap, e.g. zune-jpeg; see the profile there).
 sanitizer=${FUZZ_SANITIZER:-address}
 case $sanitizer in
     address) build_dir=target ;;
@@ -46,7 +49,7 @@ fi
 
 echo "== cargo fuzz build (${#targets[@]} targets, sanitizer $sanitizer)"
 build_start=$SECONDS
-if ! cargo fuzz build --sanitizer "$sanitizer"; then
+if ! cargo fuzz build -O --sanitizer "$sanitizer"; then
     echo "run-all: the fuzz targets do not build" >&2
     exit 1
 fi
@@ -76,7 +79,7 @@ for target in "${targets[@]}"; do
     # -rss_limit_mb: the memory a target may use before it counts as an out-of-memory crash.
     # -fork=1 keeps fuzzing after a crash (each one is written to artifacts/ and counted), so one
     # bug does not hide the next.
-    cargo fuzz run --sanitizer "$sanitizer" "$target" "$copy" -- \
+    cargo fuzz run -O --sanitizer "$sanitizer" "$target" "$copy" -- \
         -max_total_time="$seconds" -timeout=10 -rss_limit_mb=2048 -fork=1 -ignore_crashes=1 \
         -ignore_timeouts=1 -ignore_ooms=1 -print_final_stats=1 >"$log" 2>&1
     status=$?
