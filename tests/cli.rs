@@ -33,6 +33,7 @@ fn plugins_lists_every_linked_implementation() {
         "ground-truth",
         "colour-names",
         "label-text",
+        "graph",
         "point-cloud",
         "threshold",
     ] {

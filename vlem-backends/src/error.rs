@@ -71,6 +71,54 @@ pub enum BackendError {
          folder with label/*.png and labels.json)"
     )]
     NeedsLabels,
+    /// Inputs that disagree with each other or with the image: a region outside the image, a
+    /// mask of the wrong length, an embedding table of the wrong size (see `segment_crops`).
+    #[error("{0}")]
+    InvalidInput(String),
+    /// A weights file named by the config that does not exist (feature `sam`).
+    #[error("the {model} weights file {} does not exist; {hint}", path.display())]
+    MissingWeights {
+        /// The model, e.g. "SAM ViT-B".
+        model: &'static str,
+        /// The file looked for (resolved against the config's folder).
+        path: PathBuf,
+        /// How to get it and convert it.
+        hint: String,
+    },
+    /// No ONNX Runtime shared library was configured or found (feature `onnx`).
+    #[error("the ONNX Runtime shared library was not found (looked: {}); {hint}", searched.join("; "))]
+    OnnxRuntimeNotFound {
+        /// Where it was looked for, in order, each with what was there.
+        searched: Vec<String>,
+        /// How to get it.
+        hint: &'static str,
+    },
+    /// An ONNX Runtime shared library that is missing or cannot be loaded (feature `onnx`).
+    #[error("cannot load the ONNX Runtime shared library {} (from {origin}): {reason}; {hint}", path.display())]
+    OnnxRuntimeLoad {
+        /// The library file.
+        path: PathBuf,
+        /// Where the path came from (the config, an environment variable, the Python package).
+        origin: String,
+        /// What went wrong.
+        reason: String,
+        /// How to get a working one.
+        hint: &'static str,
+    },
+    /// An encoder asks for another ONNX Runtime library than the one this process has loaded
+    /// (feature `onnx`): a process can load only one.
+    #[error(
+        "this process has loaded the ONNX Runtime library {} and cannot load a second one, {}; \
+         give every onnx encoder the same `library` (or none, to share the first)",
+        loaded.display(),
+        requested.display()
+    )]
+    OnnxRuntimeConflict {
+        /// The library already loaded.
+        loaded: PathBuf,
+        /// The library asked for.
+        requested: PathBuf,
+    },
 }
 
 impl BackendError {
@@ -78,13 +126,19 @@ impl BackendError {
     /// [`CoreError::InvalidParams`] (like the parse errors of [`vlem_core::parse_params`]), the
     /// rest [`CoreError::Stage`] with this error as the source.
     pub fn into_core(self, name: &str) -> CoreError {
+        self.into_core_for(StageKind::Encoder, name)
+    }
+
+    /// Like [`BackendError::into_core`], for an implementation of stage `kind` (a region proposer
+    /// reports its parameter errors under `[proposer]`, not `[encoder]`).
+    pub fn into_core_for(self, kind: StageKind, name: &str) -> CoreError {
         match self {
             BackendError::InvalidParams(message) => CoreError::InvalidParams {
-                section: StageKind::Encoder.section().to_owned(),
+                section: kind.section().to_owned(),
                 name: name.to_owned(),
                 message,
             },
-            e => CoreError::stage(StageKind::Encoder, name, e),
+            e => CoreError::stage(kind, name, e),
         }
     }
 }

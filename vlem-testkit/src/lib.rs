@@ -9,8 +9,10 @@
 //! - [`map_conformance!`]: for [`vlem_core::EmbeddingMap`] implementations.
 //! - [`map_properties!`]: property tests (arbitrary frame sequences) for [`vlem_core::EmbeddingMap`]
 //!   implementations.
+//! - [`region_proposer_conformance!`]: for [`vlem_core::RegionProposer`] implementations.
 
 pub mod encoder;
 pub mod images;
 pub mod map;
 pub mod properties;
+pub mod proposer;

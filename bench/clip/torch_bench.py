@@ -1,0 +1,46 @@
+#!/usr/bin/env python3
+"""Images per second of a CLIP image tower (get_image_features) in PyTorch `transformers`, CPU.
+
+The reference for vlem-backends/examples/clip_bench.rs: same model folder, same input size, same
+batch sizes, float32, inference mode. One warm-up call, then REPEAT timed calls; prints the best
+and the mean time per call and the images per second of the best.
+
+    python3 bench/clip/torch_bench.py MODEL_DIR --threads 2 --batch 1 16 --repeat 5
+"""
+
+import argparse
+import time
+
+import torch
+from transformers import CLIPModel
+
+
+def main() -> None:
+    p = argparse.ArgumentParser()
+    p.add_argument("model_dir")
+    p.add_argument("--threads", type=int, default=1)
+    p.add_argument("--batch", type=int, nargs="+", default=[1, 16])
+    p.add_argument("--repeat", type=int, default=5)
+    args = p.parse_args()
+    torch.set_num_threads(args.threads)
+    model = CLIPModel.from_pretrained(args.model_dir, dtype=torch.float32).eval()
+    size = model.config.vision_config.image_size
+    gen = torch.Generator().manual_seed(0)
+    for batch in args.batch:
+        x = torch.randn(batch, 3, size, size, generator=gen)
+        times = []
+        with torch.inference_mode():
+            model.get_image_features(pixel_values=x)
+            for _ in range(args.repeat):
+                t = time.perf_counter()
+                model.get_image_features(pixel_values=x)
+                times.append(time.perf_counter() - t)
+        best = min(times)
+        print(
+            f"torch threads={args.threads} batch={batch}: best {best * 1e3:.0f} ms/call, "
+            f"mean {sum(times) / len(times) * 1e3:.0f} ms/call, {batch / best:.2f} images/s"
+        )
+
+
+if __name__ == "__main__":
+    main()

@@ -1,0 +1,149 @@
+//! Times the `sam` region proposer per 640 x 480 frame: image encoder, mask decoder, the whole
+//! automatic mask generator with and without the fill-in refinement.
+//!
+//! Without `--weights` the network is the full-size architecture filled with the deterministic
+//! synthetic weights of `vlem_backends::sam::synthetic` (same cost as real weights for the
+//! networks; random weights predict low IoUs, so few masks pass the filters and the
+//! postprocessing of real masks is not part of the numbers).
+//!
+//! ```text
+//! RAYON_NUM_THREADS=2 cargo run --release -p vlem-backends --features sam --example sam_bench -- \
+//!     --variant mobile-sam --points-per-side 32,16 --refine on,off
+//! ```
+
+use std::time::Instant;
+
+use anyhow::{Context, Result, bail};
+use candle_core::Device;
+use vlem_backends::sam::model::SamModel;
+use vlem_backends::sam::synthetic::SyntheticWeights;
+use vlem_backends::sam::{GeneratorParams, SamProposer, SamVariant};
+use vlem_core::RgbImage;
+
+fn parse_list<T: std::str::FromStr>(s: &str) -> Result<Vec<T>> {
+    s.split(',')
+        .map(|v| {
+            v.trim()
+                .parse::<T>()
+                .ok()
+                .context(format!("bad value {v:?}"))
+        })
+        .collect()
+}
+
+/// A 640 x 480 image with smooth gradients and a few flat shapes.
+fn frame() -> Result<RgbImage> {
+    let (w, h) = (640u32, 480u32);
+    let mut data = Vec::with_capacity((w * h * 3) as usize);
+    for y in 0..h {
+        for x in 0..w {
+            let rect = (120..320).contains(&x) && (100..380).contains(&y);
+            let dx = f64::from(x) - 480.0;
+            let dy = f64::from(y) - 240.0;
+            let disc = dx * dx + dy * dy < 90.0 * 90.0;
+            let rgb = if rect {
+                [200, 40, 40]
+            } else if disc {
+                [30, 60, 210]
+            } else {
+                [(x / 3) as u8, (y / 2) as u8, ((x + y) / 5) as u8]
+            };
+            data.extend(rgb);
+        }
+    }
+    Ok(RgbImage::new(w, h, data)?)
+}
+
+fn main() -> Result<()> {
+    let mut variant = SamVariant::MobileSam;
+    let mut sides = vec![32usize, 16];
+    let mut refines = vec![true, false];
+    let mut weights: Option<String> = None;
+    let mut args = std::env::args().skip(1);
+    while let Some(a) = args.next() {
+        let mut value = || args.next().context(format!("{a} needs a value"));
+        match a.as_str() {
+            "--variant" => {
+                variant = match value()?.as_str() {
+                    "mobile-sam" => SamVariant::MobileSam,
+                    "vit-b" => SamVariant::VitB,
+                    v => bail!("unknown variant {v}"),
+                }
+            }
+            "--points-per-side" => sides = parse_list(&value()?)?,
+            "--refine" => {
+                refines = value()?.split(',').map(|v| v.trim() == "on").collect();
+            }
+            "--weights" => weights = Some(value()?),
+            _ => bail!("unknown argument {a}"),
+        }
+    }
+
+    let threads = std::env::var("RAYON_NUM_THREADS").unwrap_or_else(|_| "all".to_owned());
+    let start = Instant::now();
+    let model = match &weights {
+        Some(path) => {
+            let tensors = candle_core::safetensors::load(path, &Device::Cpu)?;
+            let vb =
+                candle_nn::VarBuilder::from_tensors(tensors, candle_core::DType::F32, &Device::Cpu);
+            SamModel::new(vb, &variant.encoder())?
+        }
+        None => SamModel::new(
+            SyntheticWeights::new().var_builder(&Device::Cpu),
+            &variant.encoder(),
+        )?,
+    };
+    println!(
+        "{variant:?}, {} weights, threads {threads}: model built in {:.1} s",
+        if weights.is_some() {
+            "file"
+        } else {
+            "synthetic"
+        },
+        start.elapsed().as_secs_f64()
+    );
+
+    let image = frame()?;
+    let t = Instant::now();
+    let pre = model.preprocess(image.as_raw(), 640, 480)?;
+    let pre_ms = t.elapsed().as_secs_f64() * 1e3;
+    let t = Instant::now();
+    let emb = model.embed(&pre.tensor)?;
+    let enc_ms = t.elapsed().as_secs_f64() * 1e3;
+    let points: Vec<[f32; 2]> = (0..32).map(|i| [16.0 + 30.0 * i as f32, 300.0]).collect();
+    let t = Instant::now();
+    let _ = model.decode_points(&emb, &points)?;
+    let dec_ms = t.elapsed().as_secs_f64() * 1e3 / 32.0;
+    println!(
+        "preprocess {pre_ms:.0} ms, image encoder {enc_ms:.0} ms, mask decoder {dec_ms:.1} ms per \
+         prompt (batch of 32)"
+    );
+
+    let mut proposer = Some(SamProposer::new(model, GeneratorParams::default()));
+    println!("| variant | points_per_side | refine | ms / frame | masks |");
+    println!("|---|---|---|---|---|");
+    for &side in &sides {
+        for &refine in &refines {
+            let Some(p) = proposer.take() else {
+                bail!("proposer lost")
+            };
+            let (model, _) = p.into_parts();
+            let params = GeneratorParams {
+                points_per_side: side,
+                refine,
+                ..GeneratorParams::default()
+            };
+            let p = SamProposer::new(model, params);
+            let t = Instant::now();
+            let masks = p.generate(&image)?;
+            let ms = t.elapsed().as_secs_f64() * 1e3;
+            println!(
+                "| {variant:?} | {side} | {} | {ms:.0} | {} |",
+                if refine { "on" } else { "off" },
+                masks.len()
+            );
+            proposer = Some(p);
+        }
+    }
+    Ok(())
+}

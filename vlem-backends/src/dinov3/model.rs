@@ -1,0 +1,925 @@
+//! The DINOv3 ViT backbone on candle, read from a Hugging Face `DINOv3ViTModel` folder.
+//!
+//! Why it exists: candle-transformers has DINOv2 but not DINOv3, whose ViTs differ in every
+//! block: register tokens, rotary position encoding (RoPE) on the patch tokens instead of a
+//! learnt position table, no key bias, layer scale, and a gated SiLU MLP in the "plus" sizes.
+//! This module owns the whole backbone: parsing `config.json` ([`Dinov3Config`]), loading
+//! `model.safetensors` in the tensor layout of the checkpoints on the Hugging Face hub
+//! (`facebook/dinov3-vits16-pretrain-lvd1689m`, `-vitb16-`, `-vitl16-`, and the `plus` sizes),
+//! and computing what `transformers`' `DINOv3ViTModel` computes (its `last_hidden_state`), to
+//! 1e-4 (checked by the goldens in `vlem-backends/goldens/dinov3/`).
+//!
+//! The forward pass, as `transformers` defines it:
+//! - patch embedding: a 16×16 stride-16 convolution (here a reshape and one matrix product);
+//!   tokens are `[CLS, registers..., patches (row-major)]`; no position table is added.
+//! - every layer: `x += ls1 ⊙ attn(norm1(x))`, `x += ls2 ⊙ mlp(norm2(x))`, with pre-norm layer
+//!   norms, per-channel layer scales `ls1`, `ls2`, attention scaled by `head_dim^-½`.
+//! - RoPE, applied to queries and keys of the patch tokens only (CLS and registers pass
+//!   unrotated): patch centres `((i + ½) / h, (j + ½) / w)` mapped to `[-1, 1]`, each axis by its
+//!   own patch count; `head_dim / 4` frequencies `θ^(-4k / head_dim)`; angles `2π · coord · freq`,
+//!   laid out `[y freqs, x freqs, y freqs, x freqs]`; rotation by "rotate half"
+//!   (`x·cos + [-x₂, x₁]·sin`).
+//! - the final layer norm, applied to every token.
+//!
+//! Training-only parts are left out: the mask token (read, never used at inference), drop path,
+//! the random shift / jitter / rescale of RoPE coordinates.
+
+use std::collections::HashMap;
+use std::path::{Path, PathBuf};
+
+use candle_core::{D, DType, Device, Tensor};
+use candle_nn::{LayerNorm, Module};
+use serde_json::{Map, Value};
+
+use crate::error::BackendError;
+
+/// The model's name in messages.
+pub const MODEL: &str = "DINOv3 ViT";
+
+/// The files [`Dinov3Backbone::load`] needs in the model folder.
+pub const REQUIRED_FILES: [&str; 2] = ["config.json", "model.safetensors"];
+
+/// How to get a DINOv3 backbone folder, for the messages that say it is missing.
+pub const DINOV3_INSTALL_HINT: &str = "DINOv3 weights are gated: accept the licence of \
+     facebook/dinov3-vitl16-pretrain-lvd1689m (or -vits16-, -vitb16-) on Hugging Face, then on a \
+     connected machine `hf download facebook/dinov3-vitl16-pretrain-lvd1689m config.json \
+     model.safetensors --local-dir DIR` (older huggingface_hub: `huggingface-cli download` with \
+     the same arguments), copy DIR here and name it in the config";
+
+/// A transformer MLP activation, from `hidden_act` in `config.json`.
+#[derive(Clone, Copy, Debug, PartialEq, Eq)]
+pub enum Activation {
+    /// `gelu`: the exact GELU, `x · Φ(x)` (erf); the ViT-S/B/L checkpoints.
+    Gelu,
+    /// `gelu_new`, `gelu_pytorch_tanh`, `gelu_fast`: the tanh approximation of GELU.
+    GeluTanh,
+    /// `silu` (`swish`): `x · σ(x)`; the gated MLP of the "plus" checkpoints.
+    Silu,
+}
+
+impl Activation {
+    /// The activation named `name` in `transformers`' `ACT2FN`, where it is one of these.
+    pub fn from_hf_name(name: &str) -> Option<Self> {
+        match name {
+            "gelu" => Some(Self::Gelu),
+            "gelu_new" | "gelu_pytorch_tanh" | "gelu_fast" => Some(Self::GeluTanh),
+            "silu" | "swish" => Some(Self::Silu),
+            _ => None,
+        }
+    }
+
+    pub(crate) fn apply(self, x: &Tensor) -> candle_core::Result<Tensor> {
+        match self {
+            Self::Gelu => x.gelu_erf(),
+            Self::GeluTanh => x.gelu(),
+            Self::Silu => x.silu(),
+        }
+    }
+}
+
+/// A `DINOv3ViTModel` `config.json`: what the forward pass needs of it.
+#[derive(Clone, Debug, PartialEq)]
+pub struct Dinov3Config {
+    /// Side of a square patch in pixels (16 in every released checkpoint).
+    pub patch_size: usize,
+    /// Width of the transformer (384 ViT-S, 768 ViT-B, 1024 ViT-L, 1280 ViT-H+).
+    pub hidden_size: usize,
+    /// Width of the MLP.
+    pub intermediate_size: usize,
+    /// Transformer layers.
+    pub num_hidden_layers: usize,
+    /// Attention heads per layer; `hidden_size / num_attention_heads` must be a multiple of 4
+    /// (RoPE gives each image axis half of each rotated pair).
+    pub num_attention_heads: usize,
+    /// Register tokens between CLS and the patches (4 in every released checkpoint).
+    pub num_register_tokens: usize,
+    /// Input channels (3).
+    pub num_channels: usize,
+    /// MLP activation.
+    pub hidden_act: Activation,
+    /// Epsilon of every layer norm.
+    pub layer_norm_eps: f64,
+    /// RoPE base period θ.
+    pub rope_theta: f64,
+    /// Whether the query projection has a bias.
+    pub query_bias: bool,
+    /// Whether the key projection has a bias (false in every released checkpoint).
+    pub key_bias: bool,
+    /// Whether the value projection has a bias.
+    pub value_bias: bool,
+    /// Whether the attention output projection has a bias.
+    pub proj_bias: bool,
+    /// Whether the MLP projections have biases.
+    pub mlp_bias: bool,
+    /// Gated MLP (`down(act(gate(x)) ⊙ up(x))`) instead of `down(act(up(x)))`.
+    pub use_gated_mlp: bool,
+}
+
+impl Default for Dinov3Config {
+    /// `transformers`' defaults: the ViT-S/16 shape.
+    fn default() -> Self {
+        Self {
+            patch_size: 16,
+            hidden_size: 384,
+            intermediate_size: 1536,
+            num_hidden_layers: 12,
+            num_attention_heads: 6,
+            num_register_tokens: 0,
+            num_channels: 3,
+            hidden_act: Activation::Gelu,
+            layer_norm_eps: 1e-5,
+            rope_theta: 100.0,
+            query_bias: true,
+            key_bias: false,
+            value_bias: true,
+            proj_bias: true,
+            mlp_bias: true,
+            use_gated_mlp: false,
+        }
+    }
+}
+
+impl Dinov3Config {
+    /// Parses the text of a `DINOv3ViTModel` `config.json`, with `transformers`' defaults for
+    /// absent keys. Keys the forward pass does not use (`image_size`, the training-time RoPE
+    /// augmentations, backbone outputs) are ignored: real files carry them.
+    ///
+    /// # Errors
+    /// A message naming the key that is malformed or describes an unsupported model.
+    pub fn from_json(text: &str) -> Result<Self, String> {
+        let root: Value = serde_json::from_str(text).map_err(|e| format!("not JSON: {e}"))?;
+        let m = root
+            .as_object()
+            .ok_or_else(|| "not a JSON object".to_owned())?;
+        if let Some(kind) = m.get("model_type").and_then(Value::as_str)
+            && kind != "dinov3_vit"
+        {
+            return Err(format!(
+                "model_type is {kind:?}; this backbone reads DINOv3ViTModel folders (model_type \
+                 \"dinov3_vit\"; the ConvNeXt DINOv3 models are not supported)"
+            ));
+        }
+        let d = Self::default();
+        let act_name = match m.get("hidden_act") {
+            None | Some(Value::Null) => "gelu".to_owned(),
+            Some(Value::String(s)) => s.clone(),
+            Some(v) => return Err(format!("hidden_act is {v}, expected a string")),
+        };
+        let hidden_act = Activation::from_hf_name(&act_name).ok_or_else(|| {
+            format!("hidden_act is {act_name:?}; supported: gelu, gelu_pytorch_tanh, silu")
+        })?;
+        let config = Self {
+            patch_size: square(m, "patch_size", d.patch_size)?,
+            hidden_size: usize_key(m, "hidden_size", d.hidden_size)?,
+            intermediate_size: usize_key(m, "intermediate_size", d.intermediate_size)?,
+            num_hidden_layers: usize_key(m, "num_hidden_layers", d.num_hidden_layers)?,
+            num_attention_heads: usize_key(m, "num_attention_heads", d.num_attention_heads)?,
+            num_register_tokens: usize_key(m, "num_register_tokens", d.num_register_tokens)?,
+            num_channels: usize_key(m, "num_channels", d.num_channels)?,
+            hidden_act,
+            layer_norm_eps: positive_key(m, "layer_norm_eps", d.layer_norm_eps)?,
+            rope_theta: positive_key(m, "rope_theta", d.rope_theta)?,
+            query_bias: bool_key(m, "query_bias", d.query_bias)?,
+            key_bias: bool_key(m, "key_bias", d.key_bias)?,
+            value_bias: bool_key(m, "value_bias", d.value_bias)?,
+            proj_bias: bool_key(m, "proj_bias", d.proj_bias)?,
+            mlp_bias: bool_key(m, "mlp_bias", d.mlp_bias)?,
+            use_gated_mlp: bool_key(m, "use_gated_mlp", d.use_gated_mlp)?,
+        };
+        config.validate()?;
+        Ok(config)
+    }
+
+    /// Checks the relations between values that the forward pass relies on.
+    pub fn validate(&self) -> Result<(), String> {
+        let positive = [
+            ("patch_size", self.patch_size),
+            ("hidden_size", self.hidden_size),
+            ("intermediate_size", self.intermediate_size),
+            ("num_attention_heads", self.num_attention_heads),
+            ("num_channels", self.num_channels),
+        ];
+        if let Some((key, _)) = positive.iter().find(|(_, n)| *n == 0) {
+            return Err(format!("{key} is 0"));
+        }
+        if !self.hidden_size.is_multiple_of(self.num_attention_heads) {
+            return Err(format!(
+                "hidden_size {} is not a multiple of num_attention_heads {}",
+                self.hidden_size, self.num_attention_heads
+            ));
+        }
+        if !self.head_dim().is_multiple_of(4) {
+            return Err(format!(
+                "the head dimension hidden_size / num_attention_heads = {} is not a multiple of \
+                 4, which 2-D RoPE needs",
+                self.head_dim()
+            ));
+        }
+        Ok(())
+    }
+
+    /// Channels per attention head.
+    pub fn head_dim(&self) -> usize {
+        self.hidden_size / self.num_attention_heads.max(1)
+    }
+
+    /// Tokens before the patches: CLS and the registers.
+    pub fn prefix_tokens(&self) -> usize {
+        1 + self.num_register_tokens
+    }
+}
+
+fn usize_key(m: &Map<String, Value>, key: &str, default: usize) -> Result<usize, String> {
+    match m.get(key) {
+        None | Some(Value::Null) => Ok(default),
+        Some(v) => v
+            .as_u64()
+            .and_then(|n| usize::try_from(n).ok())
+            .ok_or_else(|| format!("{key} is {v}, expected a non-negative integer")),
+    }
+}
+
+fn positive_key(m: &Map<String, Value>, key: &str, default: f64) -> Result<f64, String> {
+    match m.get(key) {
+        None | Some(Value::Null) => Ok(default),
+        Some(v) => v
+            .as_f64()
+            .filter(|x| x.is_finite() && *x > 0.0)
+            .ok_or_else(|| format!("{key} is {v}, expected a positive number")),
+    }
+}
+
+fn bool_key(m: &Map<String, Value>, key: &str, default: bool) -> Result<bool, String> {
+    match m.get(key) {
+        None | Some(Value::Null) => Ok(default),
+        Some(v) => v
+            .as_bool()
+            .ok_or_else(|| format!("{key} is {v}, expected true or false")),
+    }
+}
+
+/// A size that `transformers` accepts as an integer or a `[height, width]` pair; only square
+/// ones are supported.
+fn square(m: &Map<String, Value>, key: &str, default: usize) -> Result<usize, String> {
+    match m.get(key) {
+        None | Some(Value::Null) => Ok(default),
+        Some(Value::Array(pair)) => {
+            let sides: Option<Vec<usize>> = pair
+                .iter()
+                .map(|s| s.as_u64().and_then(|n| usize::try_from(n).ok()))
+                .collect();
+            match sides.as_deref() {
+                Some([h, w]) if h == w => Ok(*h),
+                _ => Err(format!(
+                    "{key} is {}, expected an integer or a square [n, n] pair",
+                    Value::Array(pair.clone())
+                )),
+            }
+        }
+        Some(v) => v
+            .as_u64()
+            .and_then(|n| usize::try_from(n).ok())
+            .ok_or_else(|| format!("{key} is {v}, expected an integer")),
+    }
+}
+
+/// Named tensors with checked shapes, widened to f32: the loading side of every module here.
+pub(crate) struct Weights {
+    tensors: HashMap<String, Tensor>,
+}
+
+impl Weights {
+    pub(crate) fn new(tensors: HashMap<String, Tensor>) -> Self {
+        Self { tensors }
+    }
+
+    pub(crate) fn contains(&self, name: &str) -> bool {
+        self.tensors.contains_key(name)
+    }
+
+    /// The shape of tensor `name`, if there is one.
+    pub(crate) fn dims(&self, name: &str) -> Option<Vec<usize>> {
+        self.tensors.get(name).map(|t| t.dims().to_vec())
+    }
+
+    /// The tensor `name`, which must have `shape`.
+    pub(crate) fn get(&self, name: &str, shape: &[usize]) -> Result<Tensor, String> {
+        let t = self
+            .tensors
+            .get(name)
+            .ok_or_else(|| format!("tensor {name} is missing"))?;
+        if t.dims() != shape {
+            return Err(format!(
+                "tensor {name} has shape {:?}, expected {shape:?}",
+                t.dims()
+            ));
+        }
+        t.to_dtype(DType::F32)
+            .map_err(|e| format!("tensor {name}: {e}"))
+    }
+
+    pub(crate) fn linear(
+        &self,
+        prefix: &str,
+        inputs: usize,
+        outputs: usize,
+        bias: bool,
+    ) -> Result<Linear, String> {
+        let weight = self.get(&format!("{prefix}.weight"), &[outputs, inputs])?;
+        let bias = if bias {
+            Some(self.get(&format!("{prefix}.bias"), &[outputs])?)
+        } else {
+            None
+        };
+        Linear::new(&weight, bias).map_err(|e| format!("{prefix}: {e}"))
+    }
+
+    pub(crate) fn layer_norm(
+        &self,
+        prefix: &str,
+        width: usize,
+        eps: f64,
+    ) -> Result<LayerNorm, String> {
+        Ok(LayerNorm::new(
+            self.get(&format!("{prefix}.weight"), &[width])?,
+            self.get(&format!("{prefix}.bias"), &[width])?,
+            eps,
+        ))
+    }
+}
+
+/// `x · Wᵀ + b` with `Wᵀ` stored contiguous.
+#[derive(Clone, Debug)]
+pub(crate) struct Linear {
+    weight_t: Tensor,
+    bias: Option<Tensor>,
+}
+
+impl Linear {
+    /// From a `(outputs, inputs)` weight as PyTorch stores it.
+    pub(crate) fn new(weight: &Tensor, bias: Option<Tensor>) -> candle_core::Result<Self> {
+        Ok(Self {
+            weight_t: weight.t()?.contiguous()?,
+            bias,
+        })
+    }
+
+    /// Over the last dimension of `x`, whatever its leading dimensions (flattened to one matrix
+    /// product, which is what candle's CPU matmul is fastest at).
+    pub(crate) fn forward(&self, x: &Tensor) -> candle_core::Result<Tensor> {
+        let mut dims = x.dims().to_vec();
+        let inputs = x.dim(D::Minus1)?;
+        let rows = x.elem_count() / inputs.max(1);
+        let y = x.reshape((rows, inputs))?.matmul(&self.weight_t)?;
+        let y = match &self.bias {
+            Some(b) => y.broadcast_add(b)?,
+            None => y,
+        };
+        if let Some(last) = dims.last_mut() {
+            *last = self.weight_t.dim(1)?;
+        }
+        y.reshape(dims)
+    }
+}
+
+/// The cosines and sines of 2-D RoPE for an `h × w` patch grid, `(h·w, head_dim)` each.
+#[derive(Clone, Debug)]
+pub(crate) struct Rope {
+    cos: Tensor,
+    sin: Tensor,
+}
+
+/// RoPE angles, row-major over the grid: `(h·w) × head_dim` values laid out as
+/// `[y·f₀.., x·f₀.., y·f₀.., x·f₀..]`, each times 2π. Computed in f32 like `transformers`.
+pub fn rope_angles(grid_h: usize, grid_w: usize, head_dim: usize, theta: f64) -> Vec<f32> {
+    let quarter = head_dim / 4;
+    let freqs: Vec<f32> = (0..quarter)
+        .map(|k| {
+            let exponent = (k as f32) * (4.0 / head_dim as f32);
+            1.0 / (theta as f32).powf(exponent)
+        })
+        .collect();
+    let coord = |i: usize, n: usize| 2.0 * ((i as f32 + 0.5) / n as f32) - 1.0;
+    let two_pi = 2.0 * std::f32::consts::PI;
+    let mut out = Vec::with_capacity(grid_h * grid_w * head_dim);
+    for i in 0..grid_h {
+        let y = coord(i, grid_h);
+        for j in 0..grid_w {
+            let x = coord(j, grid_w);
+            for _ in 0..2 {
+                out.extend(freqs.iter().map(|f| two_pi * y * f));
+                out.extend(freqs.iter().map(|f| two_pi * x * f));
+            }
+        }
+    }
+    out
+}
+
+impl Rope {
+    pub(crate) fn new(
+        grid_h: usize,
+        grid_w: usize,
+        head_dim: usize,
+        theta: f64,
+        device: &Device,
+    ) -> candle_core::Result<Self> {
+        let angles = rope_angles(grid_h, grid_w, head_dim, theta);
+        let cos: Vec<f32> = angles.iter().map(|a| a.cos()).collect();
+        let sin: Vec<f32> = angles.iter().map(|a| a.sin()).collect();
+        Ok(Self {
+            cos: Tensor::from_vec(cos, (grid_h * grid_w, head_dim), device)?,
+            sin: Tensor::from_vec(sin, (grid_h * grid_w, head_dim), device)?,
+        })
+    }
+
+    /// Rotates the last `h·w` tokens of `x` (`(batch, heads, tokens, head_dim)`), leaving the
+    /// prefix tokens (CLS, registers) as they are.
+    fn apply(&self, x: &Tensor) -> candle_core::Result<Tensor> {
+        let (_, _, tokens, head_dim) = x.dims4()?;
+        let patches = self.cos.dim(0)?;
+        let prefix = tokens.checked_sub(patches).ok_or_else(|| {
+            candle_core::Error::Msg(format!(
+                "RoPE for {patches} patches applied to {tokens} tokens"
+            ))
+        })?;
+        let p = x.narrow(2, prefix, patches)?;
+        let half = head_dim / 2;
+        let rotated = Tensor::cat(
+            &[
+                &p.narrow(D::Minus1, half, half)?.neg()?,
+                &p.narrow(D::Minus1, 0, half)?,
+            ],
+            D::Minus1,
+        )?;
+        let p = (p.broadcast_mul(&self.cos)? + rotated.broadcast_mul(&self.sin)?)?;
+        if prefix == 0 {
+            Ok(p)
+        } else {
+            Tensor::cat(&[&x.narrow(2, 0, prefix)?, &p], 2)
+        }
+    }
+}
+
+/// Multi-head self-attention with the query, key and value projections fused into one matrix
+/// product, optional RoPE on the patch tokens and an optional causal mask.
+#[derive(Clone, Debug)]
+pub(crate) struct Attention {
+    pub(crate) qkv: Linear,
+    pub(crate) out: Linear,
+    pub(crate) heads: usize,
+}
+
+impl Attention {
+    /// `x`: `(batch, tokens, width)`.
+    pub(crate) fn forward(
+        &self,
+        x: &Tensor,
+        rope: Option<&Rope>,
+        mask: Option<&Tensor>,
+    ) -> candle_core::Result<Tensor> {
+        let (batch, tokens, width) = x.dims3()?;
+        let head_dim = width / self.heads;
+        let qkv = self
+            .qkv
+            .forward(x)?
+            .reshape((batch, tokens, 3, self.heads, head_dim))?
+            .permute((2, 0, 3, 1, 4))?; // (3, batch, heads, tokens, head_dim)
+        let mut q = qkv.get(0)?.contiguous()?;
+        let mut k = qkv.get(1)?.contiguous()?;
+        let v = qkv.get(2)?.contiguous()?;
+        if let Some(rope) = rope {
+            q = rope.apply(&q)?;
+            k = rope.apply(&k)?;
+        }
+        let q = (q * (head_dim as f64).powf(-0.5))?;
+        let logits = q.matmul(&k.t()?)?;
+        let logits = match mask {
+            Some(m) => logits.broadcast_add(m)?,
+            None => logits,
+        };
+        let weights = candle_nn::ops::softmax_last_dim(&logits)?;
+        let mixed = weights
+            .matmul(&v)?
+            .transpose(1, 2)?
+            .reshape((batch, tokens, width))?;
+        self.out.forward(&mixed)
+    }
+}
+
+/// A transformer MLP: plain (`down(act(up x))`) or gated (`down(act(gate x) ⊙ up x)`).
+#[derive(Clone, Debug)]
+pub(crate) enum Mlp {
+    Plain {
+        up: Linear,
+        down: Linear,
+        act: Activation,
+    },
+    Gated {
+        gate: Linear,
+        up: Linear,
+        down: Linear,
+        act: Activation,
+    },
+}
+
+impl Mlp {
+    fn forward(&self, x: &Tensor) -> candle_core::Result<Tensor> {
+        match self {
+            Self::Plain { up, down, act } => down.forward(&act.apply(&up.forward(x)?)?),
+            Self::Gated {
+                gate,
+                up,
+                down,
+                act,
+            } => down.forward(&(act.apply(&gate.forward(x)?)? * up.forward(x)?)?),
+        }
+    }
+}
+
+/// One pre-norm transformer block with optional per-channel layer scales:
+/// `x += ls1 ⊙ attn(norm1 x)`, `x += ls2 ⊙ mlp(norm2 x)`.
+#[derive(Clone, Debug)]
+pub(crate) struct Block {
+    pub(crate) norm1: LayerNorm,
+    pub(crate) attention: Attention,
+    pub(crate) scale1: Option<Tensor>,
+    pub(crate) norm2: LayerNorm,
+    pub(crate) mlp: Mlp,
+    pub(crate) scale2: Option<Tensor>,
+}
+
+impl Block {
+    pub(crate) fn forward(
+        &self,
+        x: &Tensor,
+        rope: Option<&Rope>,
+        mask: Option<&Tensor>,
+    ) -> candle_core::Result<Tensor> {
+        let scaled = |y: Tensor, s: &Option<Tensor>| match s {
+            Some(s) => y.broadcast_mul(s),
+            None => Ok(y),
+        };
+        let a = self
+            .attention
+            .forward(&self.norm1.forward(x)?, rope, mask)?;
+        let x = (x + scaled(a, &self.scale1)?)?;
+        let m = self.mlp.forward(&self.norm2.forward(&x)?)?;
+        x + scaled(m, &self.scale2)?
+    }
+}
+
+/// What the backbone gives for a batch of images: every token after the final layer norm
+/// (`transformers`' `last_hidden_state`), and the patch grid's shape.
+#[derive(Clone, Debug)]
+pub struct BackboneOutput {
+    /// `(batch, 1 + registers + grid_height·grid_width, hidden)`: CLS, registers, patches.
+    pub tokens: Tensor,
+    /// Register tokens per image.
+    pub num_register_tokens: usize,
+    /// Patch rows.
+    pub grid_height: usize,
+    /// Patches per row.
+    pub grid_width: usize,
+}
+
+impl BackboneOutput {
+    /// The CLS tokens, `(batch, hidden)`.
+    ///
+    /// # Errors
+    /// Only if the tensor is not the shape this type describes.
+    pub fn cls(&self) -> candle_core::Result<Tensor> {
+        self.tokens.narrow(1, 0, 1)?.squeeze(1)
+    }
+
+    /// The register tokens, `(batch, registers, hidden)`.
+    ///
+    /// # Errors
+    /// Only if the tensor is not the shape this type describes.
+    pub fn registers(&self) -> candle_core::Result<Tensor> {
+        self.tokens.narrow(1, 1, self.num_register_tokens)
+    }
+
+    /// The patch tokens as a grid, `(batch, grid_height, grid_width, hidden)`, row-major as the
+    /// image.
+    ///
+    /// # Errors
+    /// Only if the tensor is not the shape this type describes.
+    pub fn patch_grid(&self) -> candle_core::Result<Tensor> {
+        let (batch, _, hidden) = self.tokens.dims3()?;
+        self.tokens
+            .narrow(
+                1,
+                1 + self.num_register_tokens,
+                self.grid_height * self.grid_width,
+            )?
+            .reshape((batch, self.grid_height, self.grid_width, hidden))
+    }
+}
+
+/// The DINOv3 ViT backbone, ready to run. Thread-safe: every method takes `&self`.
+#[derive(Clone)]
+pub struct Dinov3Backbone {
+    config: Dinov3Config,
+    /// `(channels·patch·patch, hidden)`: the patch convolution as a matrix.
+    patch_weight_t: Tensor,
+    patch_bias: Tensor,
+    /// `(1, 1 + registers, hidden)`: CLS then the registers.
+    prefix: Tensor,
+    layers: Vec<Block>,
+    norm: LayerNorm,
+    device: Device,
+    dir: PathBuf,
+}
+
+impl std::fmt::Debug for Dinov3Backbone {
+    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
+        f.debug_struct("Dinov3Backbone")
+            .field("dir", &self.dir)
+            .field("config", &self.config)
+            .finish_non_exhaustive()
+    }
+}
+
+/// `dir` if it holds every file of [`REQUIRED_FILES`]; `origin` says where the folder came from.
+///
+/// # Errors
+/// [`BackendError::MissingModelFiles`] naming the missing files and how to get them.
+pub fn check_model_dir(dir: &Path, origin: String) -> Result<PathBuf, BackendError> {
+    let missing = crate::model_files::missing_files(dir, &REQUIRED_FILES);
+    if missing.is_empty() {
+        Ok(dir.to_path_buf())
+    } else {
+        Err(BackendError::MissingModelFiles {
+            model: MODEL,
+            dir: dir.to_path_buf(),
+            origin,
+            missing,
+            hint: DINOV3_INSTALL_HINT,
+        })
+    }
+}
+
+impl Dinov3Backbone {
+    /// Loads the backbone in `dir` (`config.json`, `model.safetensors`), on the CPU, in f32
+    /// (half-precision weights are widened). Reads the tensor names of the hub checkpoints
+    /// (`layer.N.…`) and those `transformers` ≥ 5 uses in memory (`model.layer.N.…`).
+    ///
+    /// # Errors
+    /// [`BackendError::MissingModelFiles`] when a file is missing,
+    /// [`BackendError::InvalidModelFile`] when one cannot be read or does not describe a DINOv3
+    /// ViT (wrong `model_type`, tensor names or shapes that disagree with `config.json`).
+    pub fn load(dir: &Path) -> Result<Self, BackendError> {
+        let dir = check_model_dir(dir, "the caller".to_owned())?;
+        let config_path = dir.join("config.json");
+        let text =
+            std::fs::read_to_string(&config_path).map_err(|e| BackendError::InvalidModelFile {
+                path: config_path.clone(),
+                reason: format!("cannot read it: {e}"),
+            })?;
+        let config =
+            Dinov3Config::from_json(&text).map_err(|reason| BackendError::InvalidModelFile {
+                path: config_path.clone(),
+                reason,
+            })?;
+        let device = Device::Cpu;
+        let weights_path = dir.join("model.safetensors");
+        let tensors = candle_core::safetensors::load(&weights_path, &device).map_err(|e| {
+            BackendError::InvalidModelFile {
+                path: weights_path.clone(),
+                reason: format!("cannot read the weights: {e}"),
+            }
+        })?;
+        let mut backbone = Self::from_weights(&config, &Weights::new(tensors), "", &device)
+            .map_err(|reason| BackendError::InvalidModelFile {
+                path: weights_path.clone(),
+                reason: format!("the weights do not match config.json: {reason}"),
+            })?;
+        backbone.dir = dir;
+        Ok(backbone)
+    }
+
+    /// Builds the backbone from tensors named as in a `DINOv3ViTModel` state dict, each name
+    /// preceded by `prefix` (empty for a backbone file of its own).
+    pub(crate) fn from_weights(
+        config: &Dinov3Config,
+        w: &Weights,
+        prefix: &str,
+        device: &Device,
+    ) -> Result<Self, String> {
+        config.validate()?;
+        let c = config;
+        let hidden = c.hidden_size;
+        let p = c.patch_size;
+        let e = format!("{prefix}embeddings");
+        let patch = w.get(
+            &format!("{e}.patch_embeddings.weight"),
+            &[hidden, c.num_channels, p, p],
+        )?;
+        let patch_weight_t = patch
+            .reshape((hidden, c.num_channels * p * p))
+            .and_then(|t| t.t())
+            .and_then(|t| t.contiguous())
+            .map_err(|e| e.to_string())?;
+        let patch_bias = w.get(&format!("{e}.patch_embeddings.bias"), &[hidden])?;
+        let cls = w.get(&format!("{e}.cls_token"), &[1, 1, hidden])?;
+        let prefix_tokens = if c.num_register_tokens > 0 {
+            let registers = w.get(
+                &format!("{e}.register_tokens"),
+                &[1, c.num_register_tokens, hidden],
+            )?;
+            Tensor::cat(&[&cls, &registers], 1).map_err(|e| e.to_string())?
+        } else {
+            cls
+        };
+        // Hub files say `layer.N`; transformers ≥ 5 keeps `model.layer.N` in memory.
+        let layer_root = if w.contains(&format!("{prefix}model.layer.0.norm1.weight")) {
+            format!("{prefix}model.layer")
+        } else {
+            format!("{prefix}layer")
+        };
+        let layers = (0..c.num_hidden_layers)
+            .map(|i| load_hf_layer(w, &format!("{layer_root}.{i}"), c))
+            .collect::<Result<Vec<_>, _>>()?;
+        Ok(Self {
+            config: config.clone(),
+            patch_weight_t,
+            patch_bias,
+            prefix: prefix_tokens,
+            layers,
+            norm: w.layer_norm(&format!("{prefix}norm"), hidden, c.layer_norm_eps)?,
+            device: device.clone(),
+            dir: PathBuf::new(),
+        })
+    }
+
+    /// The parsed `config.json`.
+    pub fn config(&self) -> &Dinov3Config {
+        &self.config
+    }
+
+    /// The model folder (empty when built from tensors in memory).
+    pub fn dir(&self) -> &Path {
+        &self.dir
+    }
+
+    /// The device the weights live on (the CPU).
+    pub fn device(&self) -> &Device {
+        &self.device
+    }
+
+    /// Runs the backbone on `pixels`, `(batch, channels, height, width)`, normalised (ImageNet
+    /// mean and std for the released checkpoints); `height` and `width` must be multiples of
+    /// the patch size, and may differ.
+    ///
+    /// # Errors
+    /// A candle error for a tensor of the wrong rank or channel count, or a side that is not a
+    /// positive multiple of the patch size.
+    pub fn forward(&self, pixels: &Tensor) -> candle_core::Result<BackboneOutput> {
+        let c = &self.config;
+        let (batch, channels, height, width) = pixels.dims4()?;
+        let p = c.patch_size;
+        if channels != c.num_channels
+            || height == 0
+            || width == 0
+            || !height.is_multiple_of(p)
+            || !width.is_multiple_of(p)
+        {
+            return Err(candle_core::Error::Msg(format!(
+                "the backbone takes {} channels and sides that are positive multiples of {p}; \
+                 got {channels} channels, {height}x{width}",
+                c.num_channels
+            )));
+        }
+        let (gh, gw) = (height / p, width / p);
+        // (b, c, gh, p, gw, p) -> (b, gh, gw, c, p, p): each patch's pixels in the order of the
+        // convolution weight, so that the convolution is one matrix product.
+        let patches = pixels
+            .reshape((batch, channels, gh, p, gw, p))?
+            .permute((0, 2, 4, 1, 3, 5))?
+            .contiguous()?
+            .reshape((batch * gh * gw, channels * p * p))?;
+        let patches = patches
+            .matmul(&self.patch_weight_t)?
+            .broadcast_add(&self.patch_bias)?
+            .reshape((batch, gh * gw, c.hidden_size))?;
+        let prefix = self
+            .prefix
+            .broadcast_as((batch, c.prefix_tokens(), c.hidden_size))?;
+        let mut x = Tensor::cat(&[&prefix, &patches], 1)?;
+        let rope = Rope::new(gh, gw, c.head_dim(), c.rope_theta, &self.device)?;
+        for layer in &self.layers {
+            x = layer.forward(&x, Some(&rope), None)?;
+        }
+        Ok(BackboneOutput {
+            tokens: self.norm.forward(&x)?,
+            num_register_tokens: c.num_register_tokens,
+            grid_height: gh,
+            grid_width: gw,
+        })
+    }
+}
+
+/// One `DINOv3ViTLayer` from its state-dict names under `prefix`.
+fn load_hf_layer(w: &Weights, prefix: &str, c: &Dinov3Config) -> Result<Block, String> {
+    let h = c.hidden_size;
+    let a = format!("{prefix}.attention");
+    let part = |name: &str, bias: bool| -> Result<(Tensor, Tensor), String> {
+        let weight = w.get(&format!("{a}.{name}.weight"), &[h, h])?;
+        let bias = if bias {
+            w.get(&format!("{a}.{name}.bias"), &[h])?
+        } else {
+            Tensor::zeros(h, DType::F32, &Device::Cpu).map_err(|e| e.to_string())?
+        };
+        Ok((weight, bias))
+    };
+    let (qw, qb) = part("q_proj", c.query_bias)?;
+    let (kw, kb) = part("k_proj", c.key_bias)?;
+    let (vw, vb) = part("v_proj", c.value_bias)?;
+    let fused = |ts: [&Tensor; 3]| Tensor::cat(&ts, 0).map_err(|e| e.to_string());
+    let qkv = Linear::new(&fused([&qw, &kw, &vw])?, Some(fused([&qb, &kb, &vb])?))
+        .map_err(|e| e.to_string())?;
+    let attention = Attention {
+        qkv,
+        out: w.linear(&format!("{a}.o_proj"), h, h, c.proj_bias)?,
+        heads: c.num_attention_heads,
+    };
+    let m = format!("{prefix}.mlp");
+    let i = c.intermediate_size;
+    let mlp = if c.use_gated_mlp {
+        Mlp::Gated {
+            gate: w.linear(&format!("{m}.gate_proj"), h, i, c.mlp_bias)?,
+            up: w.linear(&format!("{m}.up_proj"), h, i, c.mlp_bias)?,
+            down: w.linear(&format!("{m}.down_proj"), i, h, c.mlp_bias)?,
+            act: c.hidden_act,
+        }
+    } else {
+        Mlp::Plain {
+            up: w.linear(&format!("{m}.up_proj"), h, i, c.mlp_bias)?,
+            down: w.linear(&format!("{m}.down_proj"), i, h, c.mlp_bias)?,
+            act: c.hidden_act,
+        }
+    };
+    Ok(Block {
+        norm1: w.layer_norm(&format!("{prefix}.norm1"), h, c.layer_norm_eps)?,
+        attention,
+        scale1: Some(w.get(&format!("{prefix}.layer_scale1.lambda1"), &[h])?),
+        norm2: w.layer_norm(&format!("{prefix}.norm2"), h, c.layer_norm_eps)?,
+        mlp,
+        scale2: Some(w.get(&format!("{prefix}.layer_scale2.lambda1"), &[h])?),
+    })
+}
+
+#[cfg(test)]
+mod tests {
+    #![allow(
+        clippy::unwrap_used,
+        clippy::expect_used,
+        clippy::panic,
+        reason = "tests"
+    )]
+
+    use super::*;
+
+    #[test]
+    fn config_defaults_are_transformers_defaults() {
+        let c = Dinov3Config::from_json("{}").unwrap();
+        assert_eq!(c, Dinov3Config::default());
+        assert_eq!(c.head_dim(), 64);
+        assert_eq!(c.prefix_tokens(), 1);
+    }
+
+    #[test]
+    fn bad_configs_name_the_key() {
+        let e = Dinov3Config::from_json(r#"{"model_type": "dinov2"}"#).unwrap_err();
+        assert!(e.contains("dinov2"), "{e}");
+        let e = Dinov3Config::from_json(r#"{"hidden_act": "relu"}"#).unwrap_err();
+        assert!(e.contains("relu"), "{e}");
+        let e = Dinov3Config::from_json(r#"{"hidden_size": 40, "num_attention_heads": 4}"#)
+            .unwrap_err();
+        assert!(e.contains("multiple of 4"), "{e}");
+        let e = Dinov3Config::from_json(r#"{"patch_size": [16, 8]}"#).unwrap_err();
+        assert!(e.contains("patch_size"), "{e}");
+        assert_eq!(
+            Dinov3Config::from_json(r#"{"patch_size": [14, 14]}"#)
+                .unwrap()
+                .patch_size,
+            14
+        );
+    }
+
+    #[test]
+    fn rope_angles_follow_the_centre_coordinates() {
+        // A 1x2 grid, head_dim 8: two frequencies, theta^0 = 1 and theta^(-4/8) = 0.1.
+        let a = rope_angles(1, 2, 8, 100.0);
+        assert_eq!(a.len(), 2 * 8);
+        let tau = 2.0 * std::f32::consts::PI;
+        // Patch (0, 0): y = 0 (one row), x = -0.5; layout [y f0, y f1, x f0, x f1].
+        let expected0 = [0.0, 0.0, -0.5 * tau, -0.5 * tau * 0.1];
+        for (got, want) in a[..4].iter().zip(expected0) {
+            assert!((got - want).abs() < 1e-5, "{got} vs {want}");
+        }
+        assert_eq!(a[..4], a[4..8], "the second half repeats the first");
+        // Patch (0, 1): x = +0.5.
+        assert!((a[8 + 2] - 0.5 * tau).abs() < 1e-6);
+    }
+}

@@ -1,0 +1,380 @@
+//! SAM's prompt encoder (point prompts) and mask decoder (two-way transformer, upscaling,
+//! hypernetwork heads, IoU head), shared by every SAM variant.
+//!
+//! Why it exists: the automatic mask generator runs the decoder once per grid point, so this is
+//! where most of the proposer's time goes on a CPU. It follows the reference module by module
+//! (same tensor names), with one change of evaluation order that does not change the result:
+//! the first transformer layer's image-side projections are computed once and broadcast over the
+//! batch of prompts, since every prompt sees the same image embedding there.
+
+use candle_core::{Module, Result, Tensor};
+use candle_nn::{LayerNorm, Linear, VarBuilder};
+
+use super::image::INPUT_SIZE;
+use super::layers::{LayerNorm2d, apply_linear, cat_last, gelu, layer_norm, linear, softmax_last};
+
+/// Channels of image embeddings and prompt tokens.
+pub const EMBED_DIM: usize = 256;
+/// Side of the image embedding grid.
+pub const GRID: usize = 64;
+const NUM_MASK_TOKENS: usize = 4;
+const HEADS: usize = 8;
+const MLP_DIM: usize = 2048;
+
+/// The prompt encoder, point prompts only (no boxes, no mask input).
+#[derive(Debug)]
+pub struct PromptEncoder {
+    gaussian: Tensor,
+    point_embeddings: Vec<Tensor>,
+    not_a_point: Tensor,
+    no_mask: Tensor,
+}
+
+impl PromptEncoder {
+    /// Loads from `vb` (the checkpoint's `prompt_encoder.` prefix); the mask-downscaling
+    /// convolutions and the box-corner embeddings are not needed for point prompts.
+    pub fn new(vb: VarBuilder) -> Result<Self> {
+        let point_embeddings = (0..2)
+            .map(|i| {
+                vb.pp("point_embeddings")
+                    .pp(i)
+                    .get((1, EMBED_DIM), "weight")
+            })
+            .collect::<Result<Vec<_>>>()?;
+        Ok(Self {
+            gaussian: vb
+                .pp("pe_layer")
+                .get((2, EMBED_DIM / 2), "positional_encoding_gaussian_matrix")?,
+            point_embeddings,
+            not_a_point: vb.pp("not_a_point_embed").get((1, EMBED_DIM), "weight")?,
+            no_mask: vb.pp("no_mask_embed").get((1, EMBED_DIM), "weight")?,
+        })
+    }
+
+    /// Random Fourier features of coordinates in `[0, 1]` (last dimension 2).
+    fn pe_encoding(&self, coords: &Tensor) -> Result<Tensor> {
+        let c = coords.affine(2.0, -1.0)?.broadcast_matmul(&self.gaussian)?;
+        let c = (c * (2.0 * std::f64::consts::PI))?;
+        cat_last(&[&c.sin()?, &c.cos()?])
+    }
+
+    /// The positional encoding of the embedding grid, `(1, 256, 64, 64)`.
+    pub fn dense_pe(&self) -> Result<Tensor> {
+        let dev = self.gaussian.device();
+        let mut coords = Vec::with_capacity(GRID * GRID * 2);
+        for y in 0..GRID {
+            for x in 0..GRID {
+                coords.push((x as f32 + 0.5) / GRID as f32);
+                coords.push((y as f32 + 0.5) / GRID as f32);
+            }
+        }
+        let coords = Tensor::from_vec(coords, (GRID, GRID, 2), dev)?;
+        self.pe_encoding(&coords)?
+            .permute((2, 0, 1))?
+            .unsqueeze(0)?
+            .contiguous()
+    }
+
+    /// Sparse embeddings `(B, 2, 256)` of one foreground point per prompt, `points` in input
+    /// (1024-scale) pixel coordinates: the point, then the padding point the reference adds when
+    /// no box is given.
+    pub fn embed_points(&self, points: &[[f32; 2]]) -> Result<Tensor> {
+        let dev = self.gaussian.device();
+        let b = points.len();
+        let coords: Vec<f32> = points
+            .iter()
+            .flat_map(|p| {
+                [
+                    (p[0] + 0.5) / INPUT_SIZE as f32,
+                    (p[1] + 0.5) / INPUT_SIZE as f32,
+                ]
+            })
+            .collect();
+        let coords = Tensor::from_vec(coords, (b, 1, 2), dev)?;
+        let point = self
+            .pe_encoding(&coords)?
+            .broadcast_add(&self.point_embeddings[1])?;
+        let pad = self
+            .not_a_point
+            .unsqueeze(0)?
+            .broadcast_as((b, 1, EMBED_DIM))?;
+        Tensor::cat(&[&point, &pad], 1)
+    }
+
+    /// The dense embedding without a mask prompt, `(1, 256, 1, 1)` (broadcast over the grid).
+    pub fn no_mask_dense(&self) -> Result<Tensor> {
+        self.no_mask.reshape((1, EMBED_DIM, 1, 1))
+    }
+}
+
+#[derive(Debug)]
+struct Attention {
+    q: Linear,
+    k: Linear,
+    v: Linear,
+    out: Linear,
+    internal: usize,
+}
+
+impl Attention {
+    fn new(vb: VarBuilder, dim: usize, downsample: usize) -> Result<Self> {
+        let internal = dim / downsample;
+        Ok(Self {
+            q: linear(vb.pp("q_proj"), dim, internal)?,
+            k: linear(vb.pp("k_proj"), dim, internal)?,
+            v: linear(vb.pp("v_proj"), dim, internal)?,
+            out: linear(vb.pp("out_proj"), internal, dim)?,
+            internal,
+        })
+    }
+
+    fn heads(&self, x: &Tensor) -> Result<Tensor> {
+        let (b, n, _) = x.dims3()?;
+        x.reshape((b, n, HEADS, self.internal / HEADS))?
+            .transpose(1, 2)?
+            .contiguous()
+    }
+
+    /// Attention with `(B or 1, N, C)` inputs; a batch of 1 broadcasts against the others.
+    fn forward(&self, q: &Tensor, k: &Tensor, v: &Tensor) -> Result<Tensor> {
+        let q = self.heads(&apply_linear(&self.q, q)?)?;
+        let k = self.heads(&apply_linear(&self.k, k)?)?;
+        let v = self.heads(&apply_linear(&self.v, v)?)?;
+        let scale = 1.0 / ((self.internal / HEADS) as f64).sqrt();
+        let scores = (q.broadcast_matmul(&k.t()?)? * scale)?;
+        let out = softmax_last(&scores)?.broadcast_matmul(&v)?;
+        let (b, h, n, c) = out.dims4()?;
+        let out = out.transpose(1, 2)?.reshape((b, n, h * c))?;
+        apply_linear(&self.out, &out)
+    }
+}
+
+#[derive(Debug)]
+struct TwoWayBlock {
+    self_attn: Attention,
+    norm1: LayerNorm,
+    cross_t2i: Attention,
+    norm2: LayerNorm,
+    lin1: Linear,
+    lin2: Linear,
+    norm3: LayerNorm,
+    norm4: LayerNorm,
+    cross_i2t: Attention,
+    skip_first_pe: bool,
+}
+
+impl TwoWayBlock {
+    fn new(vb: VarBuilder, skip_first_pe: bool) -> Result<Self> {
+        let d = EMBED_DIM;
+        Ok(Self {
+            self_attn: Attention::new(vb.pp("self_attn"), d, 1)?,
+            norm1: layer_norm(vb.pp("norm1"), d, 1e-5)?,
+            cross_t2i: Attention::new(vb.pp("cross_attn_token_to_image"), d, 2)?,
+            norm2: layer_norm(vb.pp("norm2"), d, 1e-5)?,
+            lin1: linear(vb.pp("mlp").pp("lin1"), d, MLP_DIM)?,
+            lin2: linear(vb.pp("mlp").pp("lin2"), MLP_DIM, d)?,
+            norm3: layer_norm(vb.pp("norm3"), d, 1e-5)?,
+            norm4: layer_norm(vb.pp("norm4"), d, 1e-5)?,
+            cross_i2t: Attention::new(vb.pp("cross_attn_image_to_token"), d, 2)?,
+            skip_first_pe,
+        })
+    }
+
+    fn forward(
+        &self,
+        queries: &Tensor,
+        keys: &Tensor,
+        query_pe: &Tensor,
+        key_pe: &Tensor,
+    ) -> Result<(Tensor, Tensor)> {
+        let queries = if self.skip_first_pe {
+            self.self_attn.forward(queries, queries, queries)?
+        } else {
+            let q = (queries + query_pe)?;
+            (queries + self.self_attn.forward(&q, &q, queries)?)?
+        };
+        let queries = self.norm1.forward(&queries)?;
+
+        let q = (&queries + query_pe)?;
+        let k = keys.broadcast_add(key_pe)?;
+        let queries = (&queries + self.cross_t2i.forward(&q, &k, keys)?)?;
+        let queries = self.norm2.forward(&queries)?;
+
+        let mlp = apply_linear(&self.lin2, &apply_linear(&self.lin1, &queries)?.relu()?)?;
+        let queries = self.norm3.forward(&(queries + mlp)?)?;
+
+        let q = (&queries + query_pe)?;
+        let attn = self.cross_i2t.forward(&k, &q, &queries)?;
+        let keys = self.norm4.forward(&keys.broadcast_add(&attn)?)?;
+        Ok((queries, keys))
+    }
+}
+
+#[derive(Debug)]
+struct Mlp {
+    layers: Vec<Linear>,
+}
+
+impl Mlp {
+    fn new(vb: VarBuilder, input: usize, hidden: usize, output: usize, n: usize) -> Result<Self> {
+        let layers = (0..n)
+            .map(|i| {
+                let i_dim = if i == 0 { input } else { hidden };
+                let o_dim = if i + 1 == n { output } else { hidden };
+                linear(vb.pp("layers").pp(i), i_dim, o_dim)
+            })
+            .collect::<Result<Vec<_>>>()?;
+        Ok(Self { layers })
+    }
+
+    fn forward(&self, xs: &Tensor) -> Result<Tensor> {
+        let mut x = xs.clone();
+        for (i, layer) in self.layers.iter().enumerate() {
+            x = apply_linear(layer, &x)?;
+            if i + 1 < self.layers.len() {
+                x = x.relu()?;
+            }
+        }
+        Ok(x)
+    }
+}
+
+/// SAM's mask decoder; see the [module documentation](self).
+#[derive(Debug)]
+pub struct MaskDecoder {
+    output_tokens: Tensor,
+    layers: Vec<TwoWayBlock>,
+    final_t2i: Attention,
+    norm_final: LayerNorm,
+    up1: UpConv2x2,
+    up_ln: LayerNorm2d,
+    up2: UpConv2x2,
+    hypernets: Vec<Mlp>,
+    iou_head: Mlp,
+}
+
+impl MaskDecoder {
+    /// Loads from `vb` (the checkpoint's `mask_decoder.` prefix).
+    pub fn new(vb: VarBuilder) -> Result<Self> {
+        let d = EMBED_DIM;
+        let iou_token = vb.pp("iou_token").get((1, d), "weight")?;
+        let mask_tokens = vb.pp("mask_tokens").get((NUM_MASK_TOKENS, d), "weight")?;
+        let t = vb.pp("transformer");
+        let layers = (0..2)
+            .map(|i| TwoWayBlock::new(t.pp("layers").pp(i), i == 0))
+            .collect::<Result<Vec<_>>>()?;
+        let up = vb.pp("output_upscaling");
+        Ok(Self {
+            output_tokens: Tensor::cat(&[&iou_token, &mask_tokens], 0)?,
+            layers,
+            final_t2i: Attention::new(t.pp("final_attn_token_to_image"), d, 2)?,
+            norm_final: layer_norm(t.pp("norm_final_attn"), d, 1e-5)?,
+            up1: UpConv2x2::new(up.pp("0"), d, d / 4)?,
+            up_ln: LayerNorm2d::new(up.pp("1"), d / 4, 1e-6)?,
+            up2: UpConv2x2::new(up.pp("3"), d / 4, d / 8)?,
+            hypernets: (0..NUM_MASK_TOKENS)
+                .map(|i| Mlp::new(vb.pp("output_hypernetworks_mlps").pp(i), d, d, d / 8, 3))
+                .collect::<Result<Vec<_>>>()?,
+            iou_head: Mlp::new(vb.pp("iou_prediction_head"), d, 256, NUM_MASK_TOKENS, 3)?,
+        })
+    }
+
+    /// All four masks and IoU predictions of each prompt: `(B, 4, 256, 256)` logits and
+    /// `(B, 4)`. `image` is `(1, 256, 64, 64)` image embeddings, `image_pe` the dense
+    /// positional encoding, `dense` the no-mask embedding, `sparse` `(B, T, 256)` prompt tokens.
+    pub fn forward(
+        &self,
+        image: &Tensor,
+        image_pe: &Tensor,
+        dense: &Tensor,
+        sparse: &Tensor,
+    ) -> Result<(Tensor, Tensor)> {
+        let b = sparse.dim(0)?;
+        let tokens = Tensor::cat(
+            &[
+                &self
+                    .output_tokens
+                    .unsqueeze(0)?
+                    .broadcast_as((b, NUM_MASK_TOKENS + 1, EMBED_DIM))?
+                    .contiguous()?,
+                sparse,
+            ],
+            1,
+        )?;
+        // Every prompt has the same image embedding (plus the same no-mask embedding): keep a
+        // batch of one until the first image update makes the keys differ.
+        let src = image.broadcast_add(dense)?;
+        let keys = src.flatten_from(2)?.transpose(1, 2)?.contiguous()?;
+        let key_pe = image_pe.flatten_from(2)?.transpose(1, 2)?.contiguous()?;
+
+        let mut queries = tokens.clone();
+        let mut keys = keys;
+        for layer in &self.layers {
+            (queries, keys) = layer.forward(&queries, &keys, &tokens, &key_pe)?;
+        }
+        let q = (&queries + &tokens)?;
+        let k = keys.broadcast_add(&key_pe)?;
+        let queries = self
+            .norm_final
+            .forward(&(&queries + self.final_t2i.forward(&q, &k, &keys)?)?)?;
+
+        let iou_out = queries.narrow(1, 0, 1)?.squeeze(1)?;
+        let mask_out = queries.narrow(1, 1, NUM_MASK_TOKENS)?;
+        let keys = keys.broadcast_as((b, GRID * GRID, EMBED_DIM))?;
+        let src = keys.transpose(1, 2)?.reshape((b, EMBED_DIM, GRID, GRID))?;
+        let up = gelu(&self.up_ln.forward(&self.up1.forward(&src)?)?)?;
+        let up = gelu(&self.up2.forward(&up)?)?;
+        let hyper = self
+            .hypernets
+            .iter()
+            .enumerate()
+            .map(|(i, mlp)| mlp.forward(&mask_out.narrow(1, i, 1)?.squeeze(1)?))
+            .collect::<Result<Vec<_>>>()?;
+        let hyper = Tensor::stack(&hyper, 1)?;
+        let (_, c, h, w) = up.dims4()?;
+        let masks =
+            hyper
+                .matmul(&up.reshape((b, c, h * w))?)?
+                .reshape((b, NUM_MASK_TOKENS, h, w))?;
+        let iou = self.iou_head.forward(&iou_out)?;
+        Ok((masks, iou))
+    }
+}
+
+/// A transposed convolution with kernel 2 and stride 2 (`nn.ConvTranspose2d(c, o, 2, 2)`): the
+/// output pixels of one input pixel do not overlap, so it is one matrix product per batch.
+#[derive(Debug)]
+struct UpConv2x2 {
+    /// `(C, O * 4)`: the weight `(C, O, 2, 2)` flattened.
+    weight: Tensor,
+    /// `(O, 1, 1)`.
+    bias: Tensor,
+    out: usize,
+}
+
+impl UpConv2x2 {
+    fn new(vb: VarBuilder, in_ch: usize, out_ch: usize) -> Result<Self> {
+        Ok(Self {
+            weight: vb
+                .get((in_ch, out_ch, 2, 2), "weight")?
+                .reshape((in_ch, out_ch * 4))?,
+            bias: vb.get(out_ch, "bias")?.reshape((out_ch, 1, 1))?,
+            out: out_ch,
+        })
+    }
+
+    /// `(B, C, H, W)` to `(B, O, 2H, 2W)`.
+    fn forward(&self, xs: &Tensor) -> Result<Tensor> {
+        let (b, c, h, w) = xs.dims4()?;
+        let y = xs
+            .reshape((b, c, h * w))?
+            .transpose(1, 2)?
+            .contiguous()?
+            .broadcast_matmul(&self.weight)?;
+        // (B, H, W, O, 2, 2) -> (B, O, H, 2, W, 2).
+        y.reshape((b, h, w, self.out, 2, 2))?
+            .permute((0, 3, 1, 4, 2, 5))?
+            .reshape((b, self.out, 2 * h, 2 * w))?
+            .broadcast_add(&self.bias)
+    }
+}

@@ -1,0 +1,107 @@
+//! Small building blocks shared by SAM's image encoders and mask decoder, written to match
+//! PyTorch's modules: exact (erf) GELU, LayerNorm over channels, convolutions with their batch
+//! norm folded in.
+//!
+//! Why it exists: candle-transformers' `segment_anything` uses the tanh approximation of GELU in
+//! the mask decoder and in TinyViT, where SAM and MobileSAM use the exact one; the difference
+//! (up to ~5e-4 per activation) is visible in the masks, so this backend has its own layers.
+
+use candle_core::{D, Module, Result, Tensor};
+use candle_nn::{Conv2d, Conv2dConfig, LayerNorm, Linear, VarBuilder};
+
+/// A linear layer with bias (PyTorch `nn.Linear`): weight `(out, in)`.
+pub fn linear(vb: VarBuilder, in_dim: usize, out_dim: usize) -> Result<Linear> {
+    candle_nn::linear(in_dim, out_dim, vb)
+}
+
+/// Applies a linear layer to a tensor of any rank (candle's `Linear` wants rank 2-4 with a
+/// matching batch layout; this flattens the leading dimensions).
+pub fn apply_linear(layer: &Linear, xs: &Tensor) -> Result<Tensor> {
+    let dims = xs.dims().to_vec();
+    let last = dims.len().saturating_sub(1);
+    let rows: usize = dims[..last].iter().product();
+    let in_dim = dims.get(last).copied().unwrap_or(0);
+    let out = layer.forward(&xs.reshape((rows, in_dim))?)?;
+    let mut out_dims = dims;
+    if let Some(d) = out_dims.last_mut() {
+        *d = out.dim(1)?;
+    }
+    out.reshape(out_dims)
+}
+
+/// `nn.LayerNorm(dim, eps)` over the last dimension.
+pub fn layer_norm(vb: VarBuilder, dim: usize, eps: f64) -> Result<LayerNorm> {
+    candle_nn::layer_norm(dim, eps, vb)
+}
+
+/// SAM's `LayerNorm2d`: normalises each pixel over the channels of an `(N, C, H, W)` tensor.
+#[derive(Debug, Clone)]
+pub struct LayerNorm2d {
+    weight: Tensor,
+    bias: Tensor,
+    eps: f64,
+}
+
+impl LayerNorm2d {
+    /// Loads `weight` and `bias` of `channels` values.
+    pub fn new(vb: VarBuilder, channels: usize, eps: f64) -> Result<Self> {
+        Ok(Self {
+            weight: vb.get(channels, "weight")?.reshape((1, channels, 1, 1))?,
+            bias: vb.get(channels, "bias")?.reshape((1, channels, 1, 1))?,
+            eps,
+        })
+    }
+}
+
+impl Module for LayerNorm2d {
+    fn forward(&self, xs: &Tensor) -> Result<Tensor> {
+        let mean = xs.mean_keepdim(1)?;
+        let centred = xs.broadcast_sub(&mean)?;
+        let var = centred.sqr()?.mean_keepdim(1)?;
+        centred
+            .broadcast_div(&(var + self.eps)?.sqrt()?)?
+            .broadcast_mul(&self.weight)?
+            .broadcast_add(&self.bias)
+    }
+}
+
+/// Exact GELU (PyTorch's `nn.GELU()` default).
+pub fn gelu(xs: &Tensor) -> Result<Tensor> {
+    xs.gelu_erf()
+}
+
+/// A PyTorch `Conv2d` + `BatchNorm2d` pair (TinyViT's `Conv2d_BN`, names `c.weight` and
+/// `bn.{weight,bias,running_mean,running_var}`) folded into one convolution with bias, as
+/// inference in eval mode computes it.
+pub fn conv2d_bn(
+    vb: VarBuilder,
+    in_ch: usize,
+    out_ch: usize,
+    kernel: usize,
+    cfg: Conv2dConfig,
+) -> Result<Conv2d> {
+    let groups = cfg.groups.max(1);
+    let w = vb
+        .pp("c")
+        .get((out_ch, in_ch / groups, kernel, kernel), "weight")?;
+    let bn = vb.pp("bn");
+    let gamma = bn.get(out_ch, "weight")?;
+    let beta = bn.get(out_ch, "bias")?;
+    let mean = bn.get(out_ch, "running_mean")?;
+    let var = bn.get(out_ch, "running_var")?;
+    // BatchNorm2d's default eps.
+    let scale = gamma.div(&(var + 1e-5)?.sqrt()?)?;
+    let w = w.broadcast_mul(&scale.reshape((out_ch, 1, 1, 1))?)?;
+    let b = beta.sub(&mean.mul(&scale)?)?;
+    Ok(Conv2d::new(w, Some(b), cfg))
+}
+
+/// Softmax over the last dimension.
+pub fn softmax_last(xs: &Tensor) -> Result<Tensor> {
+    candle_nn::ops::softmax_last_dim(xs)
+}
+
+/// Concatenates along the last dimension.
+pub fn cat_last(xs: &[&Tensor]) -> Result<Tensor> {
+    Tensor::cat(xs, D::Minus1)
+}

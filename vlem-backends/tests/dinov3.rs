@@ -1,0 +1,284 @@
+#![allow(
+    clippy::unwrap_used,
+    clippy::expect_used,
+    clippy::panic,
+    reason = "tests"
+)]
+//! The DINOv3 backbone against `transformers`' DINOv3ViTModel: the goldens of
+//! `goldens/dinov3/make_dinov3_goldens.py` (tiny random-weight models in the Hugging Face
+//! layout), plus the behaviour around them (batching, grid shapes, missing files).
+#![cfg(feature = "dinov3")]
+
+use std::collections::HashMap;
+use std::path::{Path, PathBuf};
+
+use candle_core::{Device, Tensor};
+use serde_json::Value;
+use vlem_backends::BackendError;
+use vlem_backends::dinov3::{DinoTxtHeads, Dinov3Backbone};
+
+const TOLERANCE: f32 = 1e-4;
+
+fn goldens_dir() -> PathBuf {
+    Path::new(env!("CARGO_MANIFEST_DIR")).join("goldens/dinov3")
+}
+
+fn goldens() -> Value {
+    let text = std::fs::read_to_string(goldens_dir().join("dinov3_goldens.json")).unwrap();
+    serde_json::from_str(&text).unwrap()
+}
+
+/// The input of the goldens: x[c, y, x] = 2 sin(0.7 c + 0.31 y + 0.17 x + 0.013 x y), f64 then
+/// f32, shape (1, 3, height, width).
+fn pixels(height: usize, width: usize) -> Tensor {
+    let mut v = Vec::with_capacity(3 * height * width);
+    for c in 0..3 {
+        for y in 0..height {
+            for x in 0..width {
+                let (c, y, x) = (c as f64, y as f64, x as f64);
+                v.push((2.0 * (0.7 * c + 0.31 * y + 0.17 * x + 0.013 * x * y).sin()) as f32);
+            }
+        }
+    }
+    Tensor::from_vec(v, (1, 3, height, width), &Device::Cpu).unwrap()
+}
+
+fn max_abs_diff(a: &[f32], b: &[f32]) -> f32 {
+    assert_eq!(a.len(), b.len());
+    a.iter()
+        .zip(b)
+        .map(|(x, y)| (x - y).abs())
+        .fold(0.0, f32::max)
+}
+
+fn flat(t: &Tensor) -> Vec<f32> {
+    t.flatten_all().unwrap().to_vec1::<f32>().unwrap()
+}
+
+#[test]
+fn backbone_matches_transformers_goldens() {
+    let g = goldens();
+    let models = g["models"].as_object().unwrap();
+    assert_eq!(models.len(), 2);
+    for (name, model) in models {
+        let backbone = Dinov3Backbone::load(&goldens_dir().join(name)).unwrap();
+        let registers = model["num_register_tokens"].as_u64().unwrap() as usize;
+        let hidden = model["hidden_size"].as_u64().unwrap() as usize;
+        assert_eq!(backbone.config().num_register_tokens, registers);
+        for case in model["cases"].as_array().unwrap() {
+            let height = case["height"].as_u64().unwrap() as usize;
+            let width = case["width"].as_u64().unwrap() as usize;
+            let expected: Vec<f32> = case["last_hidden_state"]
+                .as_array()
+                .unwrap()
+                .iter()
+                .map(|v| v.as_f64().unwrap() as f32)
+                .collect();
+            let out = backbone.forward(&pixels(height, width)).unwrap();
+            let (gh, gw) = (height / 16, width / 16);
+            assert_eq!((out.grid_height, out.grid_width), (gh, gw));
+            assert_eq!(out.tokens.dims(), &[1, 1 + registers + gh * gw, hidden]);
+            let got = flat(&out.tokens);
+            let diff = max_abs_diff(&got, &expected);
+            assert!(
+                diff <= TOLERANCE,
+                "{name} {height}x{width}: max |diff| {diff}"
+            );
+            // The three views cut the same tokens: CLS first, then registers, then patches in
+            // row-major grid order.
+            assert_eq!(flat(&out.cls().unwrap()), got[..hidden]);
+            let regs = out.registers().unwrap();
+            assert_eq!(regs.dims(), &[1, registers, hidden]);
+            assert_eq!(flat(&regs), got[hidden..(1 + registers) * hidden]);
+            let grid = out.patch_grid().unwrap();
+            assert_eq!(grid.dims(), &[1, gh, gw, hidden]);
+            let grid = flat(&grid);
+            let last = (gh * gw - 1) * hidden;
+            let offset = (1 + registers) * hidden;
+            assert_eq!(grid[last..], got[offset + last..]);
+            // Patch (row 1, column 0) is token 1 + registers + gw.
+            assert_eq!(
+                grid[gw * hidden..(gw + 1) * hidden],
+                got[offset + gw * hidden..offset + (gw + 1) * hidden]
+            );
+        }
+    }
+}
+
+#[test]
+fn a_batch_equals_its_images_one_by_one() {
+    let backbone = Dinov3Backbone::load(&goldens_dir().join("tiny")).unwrap();
+    let a = pixels(48, 80);
+    let b = (pixels(48, 80) * -0.5).unwrap();
+    let both = Tensor::cat(&[&a, &b], 0).unwrap();
+    let out = backbone.forward(&both).unwrap();
+    let one_a = flat(&backbone.forward(&a).unwrap().tokens);
+    let one_b = flat(&backbone.forward(&b).unwrap().tokens);
+    let batch = flat(&out.tokens);
+    let half = batch.len() / 2;
+    assert!(max_abs_diff(&batch[..half], &one_a) < 1e-5);
+    assert!(max_abs_diff(&batch[half..], &one_b) < 1e-5);
+    assert!(
+        max_abs_diff(&one_a, &one_b) > 1e-2,
+        "different images, same tokens"
+    );
+}
+
+#[test]
+fn sides_must_be_multiples_of_the_patch() {
+    let backbone = Dinov3Backbone::load(&goldens_dir().join("tiny")).unwrap();
+    let e = backbone.forward(&pixels(40, 64)).unwrap_err().to_string();
+    assert!(e.contains("40x64"), "{e}");
+    let grey = Tensor::zeros((1, 1, 32, 32), candle_core::DType::F32, &Device::Cpu).unwrap();
+    assert!(backbone.forward(&grey).is_err());
+}
+
+#[test]
+fn in_memory_tensor_names_load_too() {
+    // transformers >= 5 names the layers `model.layer.N` in memory (the hub files say
+    // `layer.N`): a file saved with those names must give the same model.
+    let src = goldens_dir().join("tiny");
+    let tensors =
+        candle_core::safetensors::load(src.join("model.safetensors"), &Device::Cpu).unwrap();
+    let renamed: HashMap<String, Tensor> = tensors
+        .into_iter()
+        .map(|(k, v)| {
+            let k = match k.strip_prefix("layer.") {
+                Some(rest) => format!("model.layer.{rest}"),
+                None => k,
+            };
+            (k, v)
+        })
+        .collect();
+    assert!(renamed.contains_key("model.layer.1.norm2.weight"));
+    let dir = tempfile::tempdir().unwrap();
+    candle_core::safetensors::save(&renamed, dir.path().join("model.safetensors")).unwrap();
+    std::fs::copy(src.join("config.json"), dir.path().join("config.json")).unwrap();
+    let a = Dinov3Backbone::load(&src).unwrap();
+    let b = Dinov3Backbone::load(dir.path()).unwrap();
+    let x = pixels(64, 64);
+    assert_eq!(
+        flat(&a.forward(&x).unwrap().tokens),
+        flat(&b.forward(&x).unwrap().tokens)
+    );
+}
+
+#[test]
+fn weights_that_disagree_with_the_config_are_named() {
+    let src = goldens_dir().join("tiny");
+    let dir = tempfile::tempdir().unwrap();
+    std::fs::copy(
+        src.join("model.safetensors"),
+        dir.path().join("model.safetensors"),
+    )
+    .unwrap();
+    let config = std::fs::read_to_string(src.join("config.json"))
+        .unwrap()
+        .replace("\"num_hidden_layers\": 2", "\"num_hidden_layers\": 3");
+    std::fs::write(dir.path().join("config.json"), config).unwrap();
+    let e = Dinov3Backbone::load(dir.path()).unwrap_err();
+    assert!(matches!(e, BackendError::InvalidModelFile { .. }), "{e:?}");
+    assert!(e.to_string().contains("layer.2"), "{e}");
+}
+
+#[test]
+fn missing_files_are_named_with_the_way_to_get_them() {
+    let dir = tempfile::tempdir().unwrap();
+    std::fs::write(dir.path().join("config.json"), "{}").unwrap();
+    let e = Dinov3Backbone::load(dir.path()).unwrap_err();
+    let BackendError::MissingModelFiles { missing, .. } = &e else {
+        panic!("{e:?}");
+    };
+    assert_eq!(missing, &vec!["model.safetensors"]);
+    let message = e.to_string();
+    assert!(
+        message.contains("facebook/dinov3-vitl16-pretrain-lvd1689m"),
+        "{message}"
+    );
+}
+
+fn floats(v: &Value) -> Vec<f32> {
+    v.as_array()
+        .unwrap()
+        .iter()
+        .map(|x| x.as_f64().unwrap() as f32)
+        .collect()
+}
+
+fn tiny_dinotxt() -> (Dinov3Backbone, DinoTxtHeads, Value) {
+    let g = goldens()["dinotxt"].clone();
+    let backbone =
+        Dinov3Backbone::load(&goldens_dir().join(g["backbone"].as_str().unwrap())).unwrap();
+    let heads = DinoTxtHeads::load_pth(
+        &goldens_dir().join(g["checkpoint"].as_str().unwrap()),
+        g["vision_heads"].as_u64().unwrap() as usize,
+        Some(g["text_heads"].as_u64().unwrap() as usize),
+    )
+    .unwrap();
+    (backbone, heads, g)
+}
+
+#[test]
+fn dinotxt_vision_head_matches_meta_goldens() {
+    let (backbone, heads, g) = tiny_dinotxt();
+    assert_eq!(heads.vision_blocks(), 2);
+    assert_eq!(heads.embed_dim(), 2 * heads.patch_dim());
+    for case in g["images"].as_array().unwrap() {
+        let height = case["height"].as_u64().unwrap() as usize;
+        let width = case["width"].as_u64().unwrap() as usize;
+        let out = heads
+            .vision(&backbone.forward(&pixels(height, width)).unwrap())
+            .unwrap();
+        let image = flat(&out.image_embedding);
+        let diff = max_abs_diff(&image, &floats(&case["image_embedding"]));
+        assert!(
+            diff <= TOLERANCE,
+            "{height}x{width} image: max |diff| {diff}"
+        );
+        let (gh, gw) = (height / 16, width / 16);
+        assert_eq!(out.patch_grid.dims(), &[1, gh, gw, heads.patch_dim()]);
+        let diff = max_abs_diff(&flat(&out.patch_grid), &floats(&case["patch_tokens"]));
+        assert!(
+            diff <= TOLERANCE,
+            "{height}x{width} patches: max |diff| {diff}"
+        );
+    }
+}
+
+#[test]
+fn dinotxt_text_tower_matches_meta_goldens() {
+    let (_, heads, g) = tiny_dinotxt();
+    assert_eq!(
+        heads.context_length(),
+        g["text_context"].as_u64().unwrap() as usize
+    );
+    let texts = g["texts"].as_array().unwrap();
+    assert_eq!(texts.len(), 3);
+    let mut embeddings = Vec::new();
+    for case in texts {
+        let expected = floats(&case["text_embedding"]);
+        let ids: Vec<u32> = case["ids"]
+            .as_array()
+            .unwrap()
+            .iter()
+            .map(|v| v.as_u64().unwrap() as u32)
+            .collect();
+        let got = heads.text(&ids).unwrap();
+        assert_eq!(got.len(), heads.embed_dim());
+        let diff = max_abs_diff(&got, &expected);
+        assert!(diff <= TOLERANCE, "{ids:?}: max |diff| {diff}");
+        // The zero-padded sequence the reference runs gives the same embedding.
+        let padded: Vec<u32> = case["padded_ids"]
+            .as_array()
+            .unwrap()
+            .iter()
+            .map(|v| v.as_u64().unwrap() as u32)
+            .collect();
+        assert_eq!(heads.text(&padded).unwrap(), got);
+        embeddings.push(got);
+    }
+    assert!(max_abs_diff(&embeddings[0], &embeddings[1]) > 1e-2);
+    let e = heads.text(&[3, 999]).unwrap_err().to_string();
+    assert!(e.contains("999"), "{e}");
+    assert!(heads.text(&[]).is_err());
+}
