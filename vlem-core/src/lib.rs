@@ -21,6 +21,7 @@ pub use registry::{BuildContext, Registry, StageKind, parse_params};
 pub use traits::embedding_map::{EmbeddingMap, IntegrationStats, Observation};
 pub use traits::encoder::Encoder;
 pub use traits::frame_source::FrameSource;
+pub use traits::observer::{NoObserver, RunObserver};
 pub use traits::region_proposer::RegionProposer;
 pub use traits::segmenter::{PointSet, QueryScores, Segmenter};
 pub use traits::tracker::{TrackedPose, Tracker, TrackingState};

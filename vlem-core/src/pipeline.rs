@@ -21,6 +21,7 @@ use crate::registry::{BuildContext, Registry};
 use crate::traits::embedding_map::{EmbeddingMap, IntegrationStats, Observation};
 use crate::traits::encoder::Encoder;
 use crate::traits::frame_source::FrameSource;
+use crate::traits::observer::{NoObserver, RunObserver};
 use crate::traits::region_proposer::RegionProposer;
 use crate::traits::tracker::{Tracker, TrackingState};
 use crate::types::{Frame, Pose};
@@ -240,6 +241,20 @@ impl Pipeline {
         frames: Option<usize>,
         progress: &(dyn Fn(Progress) + Sync),
     ) -> Result<RunReport> {
+        self.run_observed(source, frames, progress, &NoObserver)
+    }
+
+    /// [`Pipeline::run`], showing every frame to `observer` as it is tracked and integrated.
+    ///
+    /// # Errors
+    /// As [`Pipeline::run`].
+    pub fn run_observed(
+        &mut self,
+        source: &mut dyn FrameSource,
+        frames: Option<usize>,
+        progress: &(dyn Fn(Progress) + Sync),
+        observer: &dyn RunObserver,
+    ) -> Result<RunReport> {
         if self.tracker.needs_dataset_poses() && !source.has_poses() {
             return Err(CoreError::MissingStage {
                 message: format!(
@@ -259,6 +274,7 @@ impl Pipeline {
         let proposer = self.proposer.as_deref();
         let encoder = self.encoder.as_deref();
         let map = self.map.as_mut();
+        let watchers = Watchers { progress, observer };
         let (tracking, embedding) = std::thread::scope(|scope| {
             let tracking = scope.spawn(move || {
                 track_frames(
@@ -268,10 +284,10 @@ impl Pipeline {
                     &config,
                     integrate,
                     sender,
-                    progress,
+                    watchers,
                 )
             });
-            let embedding = embed_frames(receiver, proposer, encoder, map, progress);
+            let embedding = embed_frames(receiver, proposer, encoder, map, watchers);
             let tracking = tracking.join().map_err(|_| CoreError::Worker {
                 reason: "the tracking thread panicked".into(),
             });
@@ -300,6 +316,13 @@ impl Pipeline {
     }
 }
 
+/// Who hears about each frame: the progress callback and the observer.
+#[derive(Clone, Copy)]
+struct Watchers<'a> {
+    progress: &'a (dyn Fn(Progress) + Sync),
+    observer: &'a dyn RunObserver,
+}
+
 fn track_frames(
     tracker: &mut dyn Tracker,
     source: &mut dyn FrameSource,
@@ -307,7 +330,7 @@ fn track_frames(
     config: &PipelineConfig,
     integrate: bool,
     sender: SyncSender<Tracked>,
-    progress: &(dyn Fn(Progress) + Sync),
+    Watchers { progress, observer }: Watchers<'_>,
 ) -> Result<TrackingOutcome> {
     let mut out = TrackingOutcome::default();
     let started = Instant::now();
@@ -326,6 +349,7 @@ fn track_frames(
         let t = Instant::now();
         let tracked = tracker.track(&frame)?;
         out.track.add(t);
+        observer.frame_tracked(&frame, &tracked);
         let lost_reason = match tracked.state {
             TrackingState::Lost { reason } => Some(reason),
             TrackingState::Tracking => None,
@@ -376,7 +400,7 @@ fn embed_frames(
     proposer: Option<&dyn RegionProposer>,
     encoder: Option<&dyn Encoder>,
     mut map: Option<&mut Box<dyn EmbeddingMap>>,
-    progress: &(dyn Fn(Progress) + Sync),
+    Watchers { progress, observer }: Watchers<'_>,
 ) -> Result<EmbeddingOutcome> {
     let mut out = EmbeddingOutcome::default();
     // Dropping the receiver on error (by returning) unblocks and stops the tracking thread.
@@ -414,6 +438,7 @@ fn embed_frames(
             })?;
             out.integrate.add(t);
             out.processed += 1;
+            observer.frame_integrated(&frame, &pose, &regions, &***map);
             progress(Progress::Integrated {
                 index: frame.index,
                 map_len: map.len(),

@@ -381,3 +381,91 @@ fn start_up_checks_name_the_problem() {
          add one or configure a tracker that estimates poses"
     );
 }
+
+/// Proposes one region: the image's top-left pixel.
+struct Corner;
+
+impl vlem_core::RegionProposer for Corner {
+    fn name(&self) -> &'static str {
+        "corner"
+    }
+    fn propose(&self, _: &RgbImage) -> vlem_core::Result<Vec<Region>> {
+        Ok(vec![Region {
+            bbox: vlem_core::PixelRect {
+                x: 0,
+                y: 0,
+                width: 1,
+                height: 1,
+            },
+            mask: vec![true],
+        }])
+    }
+}
+
+/// Remembers what it was shown.
+#[derive(Default)]
+struct Watcher {
+    tracked: Mutex<Vec<(usize, bool)>>,
+    integrated: Mutex<Vec<(usize, usize, usize)>>,
+}
+
+impl vlem_core::RunObserver for Watcher {
+    fn frame_tracked(&self, frame: &Frame, tracked: &TrackedPose) {
+        let lost = matches!(tracked.state, TrackingState::Lost { .. });
+        self.tracked.lock().unwrap().push((frame.index, lost));
+    }
+    fn frame_integrated(
+        &self,
+        frame: &Frame,
+        _: &Pose,
+        regions: &[Region],
+        map: &dyn EmbeddingMap,
+    ) {
+        self.integrated
+            .lock()
+            .unwrap()
+            .push((frame.index, regions.len(), map.len()));
+    }
+}
+
+#[test]
+fn an_observer_sees_every_tracked_and_every_integrated_frame_in_order() {
+    let tracker = Box::new(Still {
+        lose_every: 3,
+        needs_poses: false,
+    });
+    let encoder = Fake {
+        needs_regions: true,
+        ..Fake::new()
+    };
+    let mut p = Pipeline::new(
+        tracker,
+        Some(Box::new(Corner)),
+        Some(Box::new(encoder)),
+        Some(recorder(2)),
+        PipelineConfig::default(),
+    )
+    .unwrap();
+    let watcher = Watcher::default();
+    let report = p
+        .run_observed(
+            &mut Planes {
+                frames: 7,
+                poses: false,
+            },
+            None,
+            &no_progress,
+            &watcher,
+        )
+        .unwrap();
+    // Frames 1 and 4 are lost (index % 3 == 1): tracked, never integrated.
+    let tracked = watcher.tracked.lock().unwrap().clone();
+    assert_eq!(tracked, (0..7).map(|i| (i, i % 3 == 1)).collect::<Vec<_>>());
+    let integrated = watcher.integrated.lock().unwrap().clone();
+    assert_eq!(
+        integrated,
+        vec![(0, 1, 1), (2, 1, 2), (3, 1, 3), (5, 1, 4), (6, 1, 5)],
+        "index, regions from the proposer, map size after integrating"
+    );
+    assert_eq!(report.frames_processed, 5);
+}

@@ -21,8 +21,8 @@ use rayon::prelude::*;
 use serde::Deserialize;
 use vlem_core::embeddings::normalise;
 use vlem_core::{
-    BuildContext, CoreError, EmbeddingMap, IntegrationStats, MapMetadata, MapSnapshot, Observation,
-    PixelEmbeddings, RigidF32, StageKind, parse_params,
+    BuildContext, ColouredMesh, CoreError, EmbeddingMap, IntegrationStats, MapMetadata,
+    MapSnapshot, Observation, PixelEmbeddings, RigidF32, StageKind, parse_params,
 };
 
 use crate::common::{check_observation, check_snapshot, invalid_parameter, resolve_dim};
@@ -635,6 +635,14 @@ impl EmbeddingMap for PointCloudMap {
 
     fn similarity(&self, text: &[f32], out: &mut Vec<f32>) -> vlem_core::Result<()> {
         self.embeddings.similarity(text, out)
+    }
+
+    fn coloured_points(&self) -> ColouredMesh {
+        ColouredMesh {
+            vertices: self.positions.clone(),
+            colours: self.colours.clone(),
+            triangles: Vec::new(),
+        }
     }
 
     fn snapshot(&self) -> MapSnapshot {

@@ -38,8 +38,8 @@ use std::collections::{BTreeMap, HashMap};
 use serde::Deserialize;
 use vlem_core::embeddings::{EmbeddingLayout, normalise};
 use vlem_core::{
-    BuildContext, CoreError, EmbeddingMap, IntegrationStats, MapMetadata, MapSnapshot, Observation,
-    PixelEmbeddings, RigidF32, StageKind, parse_params,
+    BuildContext, ColouredMesh, CoreError, EmbeddingMap, IntegrationStats, MapMetadata,
+    MapSnapshot, Observation, PixelEmbeddings, RigidF32, StageKind, parse_params,
 };
 
 use crate::common::{
@@ -817,6 +817,16 @@ impl EmbeddingMap for SegmentMap {
             out.extend(std::iter::repeat_n(score, s.cells.len()));
         }
         Ok(())
+    }
+
+    fn coloured_points(&self) -> ColouredMesh {
+        let cells = self.segments.values().flat_map(|s| s.cells.values());
+        let (vertices, colours) = cells.map(|cell| (cell.position, cell.colour)).unzip();
+        ColouredMesh {
+            vertices,
+            colours,
+            triangles: Vec::new(),
+        }
     }
 
     fn snapshot(&self) -> MapSnapshot {

@@ -29,8 +29,8 @@ use rayon::prelude::*;
 use serde::Deserialize;
 use vlem_core::embeddings::normalise;
 use vlem_core::{
-    BuildContext, CoreError, EmbeddingMap, IntegrationStats, MapMetadata, MapSnapshot, Observation,
-    PixelEmbeddings, RgbImage, RigidF32, StageKind, parse_params,
+    BuildContext, ColouredMesh, CoreError, EmbeddingMap, IntegrationStats, MapMetadata,
+    MapSnapshot, Observation, PixelEmbeddings, RgbImage, RigidF32, StageKind, parse_params,
 };
 
 use crate::common::{
@@ -671,6 +671,14 @@ impl EmbeddingMap for VoxelMap {
 
     fn similarity(&self, text: &[f32], out: &mut Vec<f32>) -> vlem_core::Result<()> {
         self.embeddings.similarity(text, out)
+    }
+
+    fn coloured_points(&self) -> ColouredMesh {
+        ColouredMesh {
+            vertices: self.positions(),
+            colours: self.colours.clone(),
+            triangles: Vec::new(),
+        }
     }
 
     fn snapshot(&self) -> MapSnapshot {

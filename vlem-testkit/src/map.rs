@@ -194,7 +194,8 @@ pub fn check_static_convergence(build: MapFactory) {
     }
 }
 
-/// Save → load → restore reproduces the map exactly (skipped for maps without `restore`).
+/// Save → load → restore reproduces the map exactly (skipped for maps without `restore`), and
+/// [`EmbeddingMap::coloured_points`] matches the snapshot.
 pub fn check_save_load(build: MapFactory) {
     let mut map = build(DIM, 100_000);
     for i in 0..3 {
@@ -208,6 +209,15 @@ pub fn check_save_load(build: MapFactory) {
         );
     }
     let snap = map.snapshot();
+    let points = map.coloured_points();
+    assert!(
+        points.vertices == snap.positions && points.colours == snap.colours,
+        "coloured_points() disagrees with the snapshot's positions and colours"
+    );
+    assert!(
+        points.triangles.is_empty(),
+        "coloured_points() returned triangles"
+    );
     let path = std::env::temp_dir().join(format!(
         "vlem-conformance-{}-{}.vlem",
         std::process::id(),

@@ -8,7 +8,7 @@
 use crate::embeddings::PixelEmbeddings;
 use crate::error::{CoreError, Result};
 use crate::mapfile::MapSnapshot;
-use crate::types::{Frame, Pose};
+use crate::types::{ColouredMesh, Frame, Pose};
 
 /// One tracked frame and its embeddings, ready to integrate.
 #[derive(Clone, Copy, Debug)]
@@ -68,6 +68,18 @@ pub trait EmbeddingMap: Send + Sync {
 
     /// Every element as point, colour and embedding, for saving and querying.
     fn snapshot(&self) -> MapSnapshot;
+
+    /// Every element's position and colour, without embeddings: what a viewer draws while the
+    /// map grows. The default takes them from [`EmbeddingMap::snapshot`]; maps override it to
+    /// skip copying the embeddings.
+    fn coloured_points(&self) -> ColouredMesh {
+        let snapshot = self.snapshot();
+        ColouredMesh {
+            vertices: snapshot.positions,
+            colours: snapshot.colours,
+            triangles: Vec::new(),
+        }
+    }
 
     /// Replaces the map content with a saved snapshot (continue mapping from a file).
     ///

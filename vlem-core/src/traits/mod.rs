@@ -6,6 +6,7 @@
 pub mod embedding_map;
 pub mod encoder;
 pub mod frame_source;
+pub mod observer;
 pub mod region_proposer;
 pub mod segmenter;
 pub mod tracker;
