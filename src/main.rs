@@ -3,6 +3,11 @@
 mod eval;
 mod output;
 mod plugins;
+#[cfg(feature = "rerun")]
+mod recording;
+#[cfg(not(feature = "rerun"))]
+#[path = "recording_disabled.rs"]
+mod recording;
 mod soak;
 mod study;
 mod study_plot;
@@ -11,14 +16,16 @@ use std::path::{Path, PathBuf};
 use std::sync::atomic::{AtomicUsize, Ordering};
 
 use anyhow::{Context, Result, bail};
-use clap::{Parser, Subcommand};
+use clap::{Args, Parser, Subcommand};
 use indicatif::{ProgressBar, ProgressStyle};
 use vlem_core::pipeline::{Pipeline, Progress, RunReport};
 use vlem_core::{
     BuildContext, Config, Encoder, MapMetadata, MapSnapshot, PointSet, QueryScores, Registry,
     StageConfig, StageKind,
 };
-use vlem_maps::grasp::GraspParams;
+use vlem_maps::grasp::{Grasp, GraspParams};
+
+use recording::{Recorder, RecordingTarget, RunRecording};
 
 /// The embedded default configuration that `vlem demo` runs.
 const DEMO_CONFIG: &str = include_str!("../configs/demo.toml");
@@ -56,6 +63,8 @@ enum Command {
         /// with a model (`frame-to-model`) export after the run.
         #[arg(long)]
         no_colour_model: bool,
+        #[command(flatten)]
+        rerun: RerunArgs,
     },
     /// Query a saved map with text.
     Query {
@@ -82,8 +91,14 @@ enum Command {
         /// set; with --ply, the gripper is drawn into the heatmap.
         #[arg(long)]
         grasp: bool,
+        /// Read queries from standard input, one per line, on the loaded map and encoder (`:help`
+        /// lists the commands); with --ply or --rerun, every query updates them.
+        #[arg(long)]
+        interactive: bool,
+        #[command(flatten)]
+        rerun: RerunArgs,
         /// Query texts.
-        #[arg(required = true)]
+        #[arg(required_unless_present = "interactive")]
         text: Vec<String>,
     },
     /// Evaluate results against a reference (trajectory accuracy: ATE and RPE).
@@ -106,7 +121,35 @@ enum Command {
         /// Output folder.
         #[arg(long, default_value = "out/demo")]
         out: PathBuf,
+        #[command(flatten)]
+        rerun: RerunArgs,
     },
+}
+
+/// Rerun recording options (the recording needs a build with the `rerun` feature).
+#[derive(Args, Clone, Default)]
+struct RerunArgs {
+    /// Record to this .rrd file (open it with the rerun viewer: `rerun FILE`).
+    #[arg(long, value_name = "FILE.rrd", conflicts_with = "rerun_connect")]
+    rerun: Option<PathBuf>,
+    /// Stream to a running rerun viewer instead, e.g. rerun+http://127.0.0.1:9876/proxy.
+    #[arg(long, value_name = "ADDR")]
+    rerun_connect: Option<String>,
+    /// During a run, log the map's points after every this many integrated frames.
+    #[arg(long, default_value_t = 10, value_name = "N")]
+    rerun_map_every: usize,
+}
+
+impl RerunArgs {
+    /// The recording these options ask for, if any.
+    fn open(&self) -> Result<Option<Recorder>> {
+        let target = match (&self.rerun, &self.rerun_connect) {
+            (Some(path), _) => RecordingTarget::File(path),
+            (None, Some(address)) => RecordingTarget::Connect(address),
+            (None, None) => return Ok(None),
+        };
+        Recorder::open(&target, self.rerun_map_every).map(Some)
+    }
 }
 
 fn main() -> std::process::ExitCode {
@@ -143,12 +186,14 @@ fn execute(command: Command) -> Result<()> {
             out,
             max_frames,
             no_colour_model,
+            rerun,
         } => {
             let parsed = read_config(&config)?;
             let options = RunOptions {
                 dataset,
                 max_frames,
                 colour_model: !no_colour_model,
+                rerun,
             };
             run(parsed, config_folder(&config), &out, &options)
         }
@@ -159,15 +204,21 @@ fn execute(command: Command) -> Result<()> {
             threshold,
             baseline,
             grasp,
+            interactive,
+            rerun,
             text,
         } => query(
             &map,
-            &QueryOptions {
+            QueryOptions {
                 ply,
-                segmenter,
-                threshold,
-                baseline,
+                selection: Selection {
+                    segmenter,
+                    threshold,
+                    baseline,
+                },
                 grasp,
+                interactive,
+                rerun,
             },
             &text,
         ),
@@ -175,7 +226,7 @@ fn execute(command: Command) -> Result<()> {
         Command::Plugins => list_plugins(),
         Command::Soak(args) => soak::execute(&args),
         Command::Study(args) => study::execute(&args),
-        Command::Demo { out } => {
+        Command::Demo { out, rerun } => {
             let config = Config::from_toml(DEMO_CONFIG)
                 .map_err(|message| anyhow::anyhow!("embedded demo config: {message}"))?;
             run(
@@ -186,6 +237,7 @@ fn execute(command: Command) -> Result<()> {
                     dataset: None,
                     max_frames: None,
                     colour_model: true,
+                    rerun,
                 },
             )
         }
@@ -200,6 +252,8 @@ struct RunOptions {
     max_frames: Option<usize>,
     /// Export the tracker's dense colour model where it has one.
     colour_model: bool,
+    /// Where to record the run, if anywhere.
+    rerun: RerunArgs,
 }
 
 /// Reads and parses a config file.
@@ -258,8 +312,11 @@ fn run(mut config: Config, config_dir: &Path, out: &Path, options: &RunOptions) 
     // Built before mapping so a bad [query.segmenter] fails at start-up, not after the run.
     let segmenter = Registry::global()?.build_segmenter(&config.query.segmenter, &ctx)?;
     let mut source = vlem_datasets::open(&config.dataset, &dataset_dir)?;
-    // Before mapping, so an unwritable output folder fails now rather than after a long run.
+    // Before mapping, so an unwritable output folder or recording fails now rather than after a
+    // long run.
     std::fs::create_dir_all(out).with_context(|| format!("cannot create {}", out.display()))?;
+    let recorder = options.rerun.open()?;
+    let recording = recorder.as_ref().map(RunRecording::new);
     let total = source.len();
     eprintln!(
         "vlem: {} frames from {}; tracker `{}`, encoder `{}`, map `{}`",
@@ -298,8 +355,15 @@ fn run(mut config: Config, config_dir: &Path, out: &Path, options: &RunOptions) 
             points.load(Ordering::Relaxed)
         ));
     };
-    let report = pipeline.run(source.as_mut(), None, &on_progress)?;
+    let observer: &dyn vlem_core::RunObserver = match &recording {
+        Some(recording) => recording,
+        None => &vlem_core::NoObserver,
+    };
+    let report = pipeline.run_observed(source.as_mut(), None, &on_progress, observer)?;
     bar.finish_and_clear();
+    if let Some(failure) = recording.as_ref().and_then(RunRecording::failure) {
+        eprintln!("warning: the rerun recording stopped early: {failure}");
+    }
 
     let trajectory: Vec<(f64, vlem_core::Pose)> = report
         .trajectory
@@ -333,41 +397,105 @@ fn run(mut config: Config, config_dir: &Path, out: &Path, options: &RunOptions) 
     let stats = stats_json(&config, &report, pipeline.map());
     output::write_atomically(&out.join("stats.json"), stats.to_string().as_bytes())?;
     print_summary(&report, pipeline.map(), out);
-    if options.colour_model {
-        export_colour_model(pipeline.tracker(), out)?;
+    if let (Some(recorder), Some(map)) = (&recorder, pipeline.map()) {
+        recorder.log_map(&map.coloured_points(), report.frames_total)?;
+    }
+    if options.colour_model || recorder.is_some() {
+        let written = if options.colour_model {
+            Some(out)
+        } else {
+            None
+        };
+        export_colour_model(
+            pipeline.tracker(),
+            written,
+            recorder.as_ref(),
+            report.frames_total,
+        )?;
     }
 
     if let (Some(snap), Some(encoder)) = (&snapshot, pipeline.encoder())
         && !config.query.texts.is_empty()
     {
-        answer_queries(
+        let answers = answer_queries(
             snap,
             encoder,
             segmenter.as_ref(),
             &config.query.texts,
             Some(out),
         )?;
+        if let Some(recorder) = &recorder {
+            record_queries(recorder, snap, &config.query.texts, &answers, &[])?;
+        }
+    }
+    if let Some(recorder) = &recorder {
+        recorder.flush()?;
+        if let Some(path) = &options.rerun.rerun {
+            println!(
+                "recording: {} (open it with `rerun {}`)",
+                path.display(),
+                path.display()
+            );
+        }
     }
     Ok(())
 }
 
-/// Writes OUT/colour-model.ply when the tracker keeps a dense colour model.
-fn export_colour_model(tracker: &dyn vlem_core::Tracker, out: &Path) -> Result<()> {
-    match tracker.colour_model() {
-        Ok(mesh) => {
-            let path = out.join("colour-model.ply");
-            output::write_atomically(&path, &output::mesh_ply(&mesh))?;
-            println!(
-                "dense colour model: {} ({} vertices, {} triangles)",
-                path.display(),
-                mesh.vertices.len(),
-                mesh.triangles.len()
-            );
-            Ok(())
-        }
-        Err(vlem_core::CoreError::Unsupported { .. }) => Ok(()),
-        Err(e) => Err(e.into()),
+/// Writes OUT/colour-model.ply (with `out`) and records the mesh (with `recorder`) when the
+/// tracker keeps a dense colour model.
+fn export_colour_model(
+    tracker: &dyn vlem_core::Tracker,
+    out: Option<&Path>,
+    recorder: Option<&Recorder>,
+    frames: usize,
+) -> Result<()> {
+    let mesh = match tracker.colour_model() {
+        Ok(mesh) => mesh,
+        Err(vlem_core::CoreError::Unsupported { .. }) => return Ok(()),
+        Err(e) => return Err(e.into()),
+    };
+    if let Some(out) = out {
+        let path = out.join("colour-model.ply");
+        output::write_atomically(&path, &output::mesh_ply(&mesh))?;
+        println!(
+            "dense colour model: {} ({} vertices, {} triangles)",
+            path.display(),
+            mesh.vertices.len(),
+            mesh.triangles.len()
+        );
     }
+    if let Some(recorder) = recorder {
+        recorder.log_colour_model(&mesh, frames)?;
+    }
+    Ok(())
+}
+
+/// Logs each query's heatmap, point sets and grasp (`grasps` is empty when none were asked for)
+/// to `recorder`.
+fn record_queries(
+    recorder: &Recorder,
+    snapshot: &MapSnapshot,
+    texts: &[String],
+    (scores, sets): &(QueryScores, Vec<PointSet>),
+    grasps: &[Option<Grasp>],
+) -> Result<()> {
+    for (q, text) in texts.iter().enumerate() {
+        let own: Vec<&PointSet> = sets
+            .iter()
+            .filter(|set| set.query == q && !set.indices.is_empty())
+            .collect();
+        let Some(s) = scores.scores.get(q) else {
+            continue;
+        };
+        // No grasps at all: none were asked for.
+        let grasp = if grasps.is_empty() {
+            None
+        } else {
+            Some(grasps.get(q).and_then(Option::as_ref))
+        };
+        recorder.log_query(text, &snapshot.positions, s, &own, grasp)?;
+    }
+    recorder.flush()
 }
 
 fn stats_json(
@@ -440,111 +568,285 @@ fn print_summary(report: &RunReport, map: Option<&dyn vlem_core::EmbeddingMap>, 
 /// The options of `vlem query` besides the map and the texts.
 struct QueryOptions {
     ply: Option<PathBuf>,
+    selection: Selection,
+    grasp: bool,
+    interactive: bool,
+    rerun: RerunArgs,
+}
+
+fn query(map_path: &Path, options: QueryOptions, texts: &[String]) -> Result<()> {
+    let mut session = QuerySession::open(map_path, options)?;
+    if !texts.is_empty() {
+        session.ask(texts)?;
+    }
+    if session.options.interactive {
+        session.interact()?;
+    }
+    Ok(())
+}
+
+/// A loaded map with its text encoder and segmenter: answers queries without reloading either.
+struct QuerySession {
+    snapshot: MapSnapshot,
+    encoder: Box<dyn Encoder>,
+    segmenter: Box<dyn vlem_core::Segmenter>,
+    ctx: BuildContext,
+    options: QueryOptions,
+    recorder: Option<Recorder>,
+}
+
+impl QuerySession {
+    fn open(map_path: &Path, options: QueryOptions) -> Result<Self> {
+        let snapshot = vlem_core::read_map_file(map_path)?;
+        let Some(stage) = snapshot.metadata.encoder.clone() else {
+            bail!(
+                "{} was mapped without an encoder (geometry only): it cannot answer text queries",
+                map_path.display()
+            );
+        };
+        let ctx = BuildContext {
+            config_dir: snapshot.metadata.config_dir.clone().unwrap_or_default(),
+            embedding_dim: None,
+        };
+        let encoder = Registry::global()?.build_encoder(&stage, &ctx)?;
+        let segmenter = build_query_segmenter(&options.selection, &ctx)?;
+        let recorder = options.rerun.open()?;
+        if let Some(recorder) = &recorder {
+            recorder.log_static_map(&snapshot.positions, &snapshot.colours)?;
+        }
+        println!(
+            "{}: {} points, {}-d embeddings from `{}`",
+            map_path.display(),
+            snapshot.len(),
+            snapshot.dim,
+            stage.kind
+        );
+        Ok(Self {
+            snapshot,
+            encoder,
+            segmenter,
+            ctx,
+            options,
+            recorder,
+        })
+    }
+
+    /// Answers `texts`: the summary lines, grasps, PLY heatmaps and the recording.
+    fn ask(&self, texts: &[String]) -> Result<()> {
+        let snapshot = &self.snapshot;
+        let answers = answer_queries(
+            snapshot,
+            self.encoder.as_ref(),
+            self.segmenter.as_ref(),
+            texts,
+            None,
+        )?;
+        let (scores, sets) = &answers;
+        // Empty unless asked for, so a recording can tell "not asked" from "none found".
+        let grasps: Vec<Option<Grasp>> = if self.options.grasp {
+            texts
+                .iter()
+                .enumerate()
+                .map(|(q, text)| grasp_query(snapshot, sets, q, text))
+                .collect()
+        } else {
+            Vec::new()
+        };
+        if let Some(ply) = &self.options.ply {
+            for (i, s) in scores.scores.iter().enumerate() {
+                // One query on the command line writes FILE itself; several, or a session of
+                // queries, write one file per query beside it.
+                let path = if texts.len() == 1 && !self.options.interactive {
+                    ply.clone()
+                } else {
+                    let stem = ply
+                        .file_stem()
+                        .map(|s| s.to_string_lossy().into_owned())
+                        .unwrap_or_default();
+                    ply.with_file_name(format!("{stem}-{}.ply", slug(&texts[i])))
+                };
+                let marker = grasps
+                    .get(i)
+                    .and_then(Option::as_ref)
+                    .map(output::gripper_vertices)
+                    .unwrap_or_default();
+                output::write_atomically(
+                    &path,
+                    &output::heatmap_ply(&snapshot.positions, s, &marker),
+                )?;
+                println!("wrote {}", path.display());
+            }
+        }
+        if let Some(recorder) = &self.recorder {
+            record_queries(recorder, snapshot, texts, &answers, &grasps)?;
+        }
+        Ok(())
+    }
+
+    /// The read-eval loop of `--interactive`: one query per line until `:quit` or end of input.
+    fn interact(&mut self) -> Result<()> {
+        use std::io::{BufRead, IsTerminal, Write};
+        let stdin = std::io::stdin();
+        let prompt = stdin.is_terminal();
+        println!("type a query, or :help");
+        let mut lines = stdin.lock().lines();
+        loop {
+            if prompt {
+                print!("vlem> ");
+                std::io::stdout().flush()?;
+            }
+            let Some(line) = lines.next().transpose()? else {
+                break;
+            };
+            let line = line.trim();
+            if line.is_empty() {
+                continue;
+            }
+            let outcome = match line.strip_prefix(':') {
+                Some(command) => match self.command(command) {
+                    Ok(Continue::Stop) => break,
+                    other => other.map(|_| ()),
+                },
+                None => self.ask(&[line.to_owned()]),
+            };
+            // A failed query (an unknown word, a bad threshold) does not end the session.
+            if let Err(e) = outcome {
+                println!("error: {}", one_line(&e));
+            }
+            std::io::stdout().flush()?;
+        }
+        Ok(())
+    }
+
+    fn command(&mut self, command: &str) -> Result<Continue> {
+        let mut words = command.split_whitespace();
+        let name = words.next().unwrap_or_default();
+        let argument = words.collect::<Vec<_>>().join(" ");
+        match name {
+            "q" | "quit" | "exit" => return Ok(Continue::Stop),
+            "help" | "h" => println!("{INTERACTIVE_HELP}"),
+            "threshold" => {
+                let value: f32 = argument
+                    .parse()
+                    .with_context(|| format!(":threshold needs a number, got \"{argument}\""))?;
+                self.reconfigure(|s| s.threshold = Some(value))?;
+                println!("threshold {value}");
+            }
+            "segmenter" => {
+                self.reconfigure(|s| s.segmenter = argument.clone())?;
+                println!("segmenter `{}`", self.segmenter.name());
+            }
+            "baseline" => {
+                self.reconfigure(|s| s.baseline = Some(argument.clone()))?;
+                println!("baseline \"{argument}\"");
+            }
+            "grasp" => {
+                self.options.grasp = match argument.as_str() {
+                    "on" => true,
+                    "off" => false,
+                    _ => bail!(":grasp takes on or off"),
+                };
+                println!("grasp {argument}");
+            }
+            _ => bail!("unknown command :{name} (:help lists them)"),
+        }
+        Ok(Continue::Go)
+    }
+
+    /// Changes how points are selected and rebuilds the segmenter; on failure nothing changes.
+    fn reconfigure(&mut self, change: impl FnOnce(&mut Selection)) -> Result<()> {
+        let mut selection = self.options.selection.clone();
+        change(&mut selection);
+        self.segmenter = build_query_segmenter(&selection, &self.ctx)?;
+        self.options.selection = selection;
+        Ok(())
+    }
+}
+
+/// What the interactive loop does after a command.
+enum Continue {
+    Go,
+    Stop,
+}
+
+const INTERACTIVE_HELP: &str = "\
+a line of text      query the map with it (summary, and --ply / --rerun output)
+:threshold X        select points with normalised similarity >= X
+:segmenter NAME     threshold, argmax or cluster (as --segmenter)
+:baseline TEXT      the generic text argmax and cluster compare against
+:grasp on|off       compute a grasp for each query's best point set
+:quit               leave (so does end of input)";
+
+/// How `vlem query` selects points: the segmenter and its two tunable parameters.
+#[derive(Clone)]
+struct Selection {
     segmenter: String,
     threshold: Option<f32>,
     baseline: Option<String>,
-    grasp: bool,
 }
 
-fn query(map_path: &Path, options: &QueryOptions, texts: &[String]) -> Result<()> {
-    let snapshot = vlem_core::read_map_file(map_path)?;
-    let Some(stage) = snapshot.metadata.encoder.clone() else {
-        bail!(
-            "{} was mapped without an encoder (geometry only): it cannot answer text queries",
-            map_path.display()
-        );
-    };
-    let ctx = BuildContext {
-        config_dir: snapshot.metadata.config_dir.clone().unwrap_or_default(),
-        embedding_dim: None,
-    };
-    let registry = Registry::global()?;
-    let encoder = registry.build_encoder(&stage, &ctx)?;
+fn build_query_segmenter(
+    selection: &Selection,
+    ctx: &BuildContext,
+) -> Result<Box<dyn vlem_core::Segmenter>> {
     let mut params = toml::Table::new();
     // The threshold segmenter always has one (0.75 unless given); the others only when asked.
-    let threshold = match (options.segmenter.as_str(), options.threshold) {
+    let threshold = match (selection.segmenter.as_str(), selection.threshold) {
         ("threshold", t) => Some(t.unwrap_or(0.75)),
         (_, t) => t,
     };
     if let Some(t) = threshold {
         params.insert("threshold".into(), toml::Value::Float(f64::from(t)));
     }
-    if let Some(b) = &options.baseline {
+    if let Some(b) = &selection.baseline {
         params.insert("baseline".into(), toml::Value::String(b.clone()));
     }
-    let segmenter = registry.build_segmenter(
+    Ok(Registry::global()?.build_segmenter(
         &StageConfig {
-            kind: options.segmenter.clone(),
+            kind: selection.segmenter.clone(),
             params,
         },
-        &ctx,
-    )?;
-    println!(
-        "{}: {} points, {}-d embeddings from `{}`",
-        map_path.display(),
-        snapshot.len(),
-        snapshot.dim,
-        stage.kind
-    );
-    let (scores, sets) =
-        answer_queries(&snapshot, encoder.as_ref(), segmenter.as_ref(), texts, None)?;
-    let mut grasps = vec![None; texts.len()];
-    if options.grasp {
-        for (q, text) in texts.iter().enumerate() {
-            // Sets of one query, best first by mean similarity: the paper grasps the best cluster.
-            let best = sets
-                .iter()
-                .filter(|set| set.query == q && !set.indices.is_empty())
-                .max_by(|a, b| a.mean_score.total_cmp(&b.mean_score));
-            let Some(best) = best else {
-                println!("\"{text}\": no grasp: no point set selected");
-                continue;
-            };
-            let points: Vec<[f32; 3]> = best
-                .indices
-                .iter()
-                .map(|&i| snapshot.positions[i])
-                .collect();
-            match vlem_maps::grasp::grasp_from_points(&points, &GraspParams::default()) {
-                Ok(g) => {
-                    let (p, c) = (g.position, g.closing);
-                    println!(
-                        "\"{text}\": grasp at ({:.3}, {:.3}, {:.3}), closing along ({:.3}, {:.3}, {:.3}), width {:.3} m, from a set of {} points",
-                        p[0],
-                        p[1],
-                        p[2],
-                        c[0],
-                        c[1],
-                        c[2],
-                        g.width,
-                        points.len()
-                    );
-                    grasps[q] = Some(g);
-                }
-                Err(e) => println!("\"{text}\": no grasp: {e}"),
-            }
+        ctx,
+    )?)
+}
+
+/// The grasp on query `q`'s best point set (the paper grasps the best cluster), printing a line
+/// either way.
+fn grasp_query(snapshot: &MapSnapshot, sets: &[PointSet], q: usize, text: &str) -> Option<Grasp> {
+    let best = sets
+        .iter()
+        .filter(|set| set.query == q && !set.indices.is_empty())
+        .max_by(|a, b| a.mean_score.total_cmp(&b.mean_score));
+    let Some(best) = best else {
+        println!("\"{text}\": no grasp: no point set selected");
+        return None;
+    };
+    let points: Vec<[f32; 3]> = best
+        .indices
+        .iter()
+        .filter_map(|&i| snapshot.positions.get(i).copied())
+        .collect();
+    match vlem_maps::grasp::grasp_from_points(&points, &GraspParams::default()) {
+        Ok(g) => {
+            let (p, c) = (g.position, g.closing);
+            println!(
+                "\"{text}\": grasp at ({:.3}, {:.3}, {:.3}), closing along ({:.3}, {:.3}, {:.3}), width {:.3} m, from a set of {} points",
+                p[0],
+                p[1],
+                p[2],
+                c[0],
+                c[1],
+                c[2],
+                g.width,
+                points.len()
+            );
+            Some(g)
+        }
+        Err(e) => {
+            println!("\"{text}\": no grasp: {e}");
+            None
         }
     }
-    if let Some(ply) = &options.ply {
-        for (i, s) in scores.scores.iter().enumerate() {
-            let path = if texts.len() == 1 {
-                ply.clone()
-            } else {
-                let stem = ply
-                    .file_stem()
-                    .map(|s| s.to_string_lossy().into_owned())
-                    .unwrap_or_default();
-                ply.with_file_name(format!("{stem}-{}.ply", slug(&texts[i])))
-            };
-            let marker = grasps[i]
-                .as_ref()
-                .map(output::gripper_vertices)
-                .unwrap_or_default();
-            output::write_atomically(&path, &output::heatmap_ply(&snapshot.positions, s, &marker))?;
-            println!("wrote {}", path.display());
-        }
-    }
-    Ok(())
 }
 
 /// Scores every point for every query, segments them, prints a line per query (and one per point

@@ -68,14 +68,12 @@ pub type Marker = ([f32; 3], [u8; 3]);
 /// The similarity written for marker vertices, outside `[0, 1]` so they can be filtered out.
 pub const MARKER_SIMILARITY: f32 = -1.0;
 
-/// Vertices drawing a parallel gripper at `grasp`: white along the closing axis between the
-/// fingertips, magenta along the two fingers, the palm joining them and a stem back along the
-/// approach direction.
-pub fn gripper_vertices(grasp: &Grasp) -> Vec<Marker> {
+/// The straight segments (from, to, colour) of a parallel gripper at `grasp`: white along the
+/// closing axis between the fingertips, magenta along the two fingers, the palm joining them and
+/// a stem back along the approach direction.
+pub fn gripper_segments(grasp: &Grasp) -> Vec<([f32; 3], [f32; 3], [u8; 3])> {
     const WHITE: [u8; 3] = [255, 255, 255];
     const MAGENTA: [u8; 3] = [255, 0, 255];
-    /// Vertices per drawn segment.
-    const STEPS: usize = 16;
     /// Finger length and stem length (m), only for drawing.
     const FINGER: f64 = 0.04;
     const STEM: f64 = 0.06;
@@ -84,7 +82,8 @@ pub fn gripper_vertices(grasp: &Grasp) -> Vec<Marker> {
     let a = Vector3::from(grasp.approach);
     // A little clearance so the fingers are drawn beside the object, not inside it.
     let half = grasp.width / 2.0 + 0.005;
-    let segments = [
+    let point = |p: Vector3<f64>| [p.x as f32, p.y as f32, p.z as f32];
+    [
         (c - k * half, c + k * half, WHITE),
         (c - k * half, c - k * half - a * FINGER, MAGENTA),
         (c + k * half, c + k * half - a * FINGER, MAGENTA),
@@ -94,13 +93,23 @@ pub fn gripper_vertices(grasp: &Grasp) -> Vec<Marker> {
             MAGENTA,
         ),
         (c - a * FINGER, c - a * (FINGER + STEM), MAGENTA),
-    ];
-    segments
-        .iter()
-        .flat_map(|&(from, to, colour)| {
+    ]
+    .into_iter()
+    .map(|(from, to, colour)| (point(from), point(to), colour))
+    .collect()
+}
+
+/// Vertices drawing [`gripper_segments`] as points, for a PLY (which has no lines).
+pub fn gripper_vertices(grasp: &Grasp) -> Vec<Marker> {
+    /// Vertices per drawn segment.
+    const STEPS: usize = 16;
+    gripper_segments(grasp)
+        .into_iter()
+        .flat_map(|(from, to, colour)| {
             (0..=STEPS).map(move |i| {
-                let p = from + (to - from) * (i as f64 / STEPS as f64);
-                ([p.x as f32, p.y as f32, p.z as f32], colour)
+                let t = i as f32 / STEPS as f32;
+                let p = [0, 1, 2].map(|d| from[d] + (to[d] - from[d]) * t);
+                (p, colour)
             })
         })
         .collect()
@@ -179,6 +188,28 @@ mod tests {
         assert_eq!(jet(0.5), [128, 255, 128]);
         assert_eq!(jet(1.0), [128, 0, 0]);
         assert_eq!(jet(f32::NAN), jet(0.0));
+    }
+
+    /// The README's legend image lists `jet` at its stops; it must not drift from the code.
+    #[test]
+    fn legend_image_matches_jet() {
+        let svg = include_str!("../docs/heatmap-legend.svg");
+        let stops: Vec<(f32, [u8; 3])> = svg
+            .lines()
+            .filter_map(|line| {
+                let offset = line.split("offset=\"").nth(1)?.split('"').next()?;
+                let rgb = line.split("rgb(").nth(1)?.split(')').next()?;
+                let channels: Vec<u8> = rgb.split(',').map(|c| c.trim().parse().unwrap()).collect();
+                Some((
+                    offset.parse().unwrap(),
+                    [channels[0], channels[1], channels[2]],
+                ))
+            })
+            .collect();
+        assert_eq!(stops.len(), 7, "{svg}");
+        for (t, colour) in stops {
+            assert_eq!(jet(t), colour, "legend stop at {t}");
+        }
     }
 
     #[test]
