@@ -184,9 +184,9 @@ fn config_errors_name_the_problem() {
         ])
     };
 
-    let err = run("[encoder]\nkind = \"clip\"\n[map]\nkind = \"point-cloud\"\n");
+    let err = run("[encoder]\nkind = \"naradio\"\n[map]\nkind = \"point-cloud\"\n");
     assert!(
-        err.contains("unknown encoder `clip` (known: colour-names, label-text)"),
+        err.contains("unknown encoder `naradio` (known: clip, colour-names, label-text, onnx)"),
         "{err}"
     );
 
