@@ -84,18 +84,7 @@ pub fn locate_model_dir(configured: Option<&Path>) -> Result<PathBuf, BackendErr
 /// [`BackendError::MissingModelFiles`] naming the missing files (all of them when `dir` does not
 /// exist).
 pub fn check_model_dir(dir: &Path, origin: String) -> Result<PathBuf, BackendError> {
-    let missing = crate::model_files::missing_files(dir, &REQUIRED_FILES);
-    if missing.is_empty() {
-        Ok(dir.to_path_buf())
-    } else {
-        Err(BackendError::MissingModelFiles {
-            model: MODEL,
-            dir: dir.to_path_buf(),
-            origin,
-            missing,
-            hint: MINILM_INSTALL_HINT,
-        })
-    }
+    crate::model_files::require_files(dir, &REQUIRED_FILES, MODEL, origin, MINILM_INSTALL_HINT)
 }
 
 /// all-MiniLM-L6-v2 (or another BERT sentence encoder in the same folder layout with mean

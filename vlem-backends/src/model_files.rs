@@ -7,6 +7,8 @@
 
 use std::path::{Path, PathBuf};
 
+use crate::BackendError;
+
 /// The entries of `required` that are not files in `dir` (all of them when `dir` does not exist).
 pub fn missing_files(dir: &Path, required: &[&'static str]) -> Vec<&'static str> {
     required
@@ -14,6 +16,32 @@ pub fn missing_files(dir: &Path, required: &[&'static str]) -> Vec<&'static str>
         .copied()
         .filter(|f| !dir.join(f).is_file())
         .collect()
+}
+
+/// `dir` when it holds every file of `required`, else [`BackendError::MissingModelFiles`] naming
+/// the missing ones, the `model`, where the folder came from (`origin`) and how to get them (`hint`).
+///
+/// # Errors
+/// As above.
+pub fn require_files(
+    dir: &Path,
+    required: &[&'static str],
+    model: &'static str,
+    origin: String,
+    hint: &'static str,
+) -> Result<PathBuf, BackendError> {
+    let missing = missing_files(dir, required);
+    if missing.is_empty() {
+        Ok(dir.to_path_buf())
+    } else {
+        Err(BackendError::MissingModelFiles {
+            model,
+            dir: dir.to_path_buf(),
+            origin,
+            missing,
+            hint,
+        })
+    }
 }
 
 /// The folder of the installed Python package `package`, asked of `python3` with

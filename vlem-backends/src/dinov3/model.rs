@@ -645,18 +645,7 @@ impl std::fmt::Debug for Dinov3Backbone {
 /// # Errors
 /// [`BackendError::MissingModelFiles`] naming the missing files and how to get them.
 pub fn check_model_dir(dir: &Path, origin: String) -> Result<PathBuf, BackendError> {
-    let missing = crate::model_files::missing_files(dir, &REQUIRED_FILES);
-    if missing.is_empty() {
-        Ok(dir.to_path_buf())
-    } else {
-        Err(BackendError::MissingModelFiles {
-            model: MODEL,
-            dir: dir.to_path_buf(),
-            origin,
-            missing,
-            hint: DINOV3_INSTALL_HINT,
-        })
-    }
+    crate::model_files::require_files(dir, &REQUIRED_FILES, MODEL, origin, DINOV3_INSTALL_HINT)
 }
 
 impl Dinov3Backbone {
