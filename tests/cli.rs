@@ -184,9 +184,11 @@ fn config_errors_name_the_problem() {
         ])
     };
 
-    let err = run("[encoder]\nkind = \"naradio\"\n[map]\nkind = \"point-cloud\"\n");
+    let err = run("[encoder]\nkind = \"siglip\"\n[map]\nkind = \"point-cloud\"\n");
     assert!(
-        err.contains("unknown encoder `naradio` (known: clip, colour-names, label-text, onnx)"),
+        err.contains(
+            "unknown encoder `siglip` (known: clip, colour-names, dinov3, label-text, onnx)"
+        ),
         "{err}"
     );
 

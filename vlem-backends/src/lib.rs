@@ -27,9 +27,10 @@
 //!   the paper's fill-in refinement.
 //! - module `segment_crops` (always): the segment encoders' shared preprocessing (crop, background
 //!   strategy, bicubic resampling) and the smaller-segment-wins pixel assignment.
-//! - module `dinov3` (feature `dinov3`): the DINOv3 ViT backbone and the dino.txt vision head and
-//!   text tower, verified against their reference code; not yet an encoder (its tokenizer is
-//!   missing), so nothing is registered.
+//! - `dinov3` (feature `dinov3`): module `dinov3`, DINOv3 ViT-L/16 with Meta's dino.txt heads and
+//!   CLIP's BPE tokenizer on candle; a patch encoder: the whole frame's patch grid, interpolated
+//!   per pixel (no proposer). Needs the Hugging Face backbone folder, the dino.txt checkpoint and
+//!   the BPE vocabulary.
 //!
 //! NARADIO (`naradio`) will live here too. The weight-free reference encoder, and the how-to for
 //! writing one, is the plugin `plugins/vlem-plugin-colour-names`.
@@ -51,9 +52,10 @@ pub mod minilm;
 #[cfg(feature = "clip")]
 pub mod clip;
 
-// Always compiled: the shared preprocessing of the segment encoders (clip, onnx), and the model
-// file lookups of every backend that loads files.
+// Always compiled: the shared preprocessing of the segment encoders (clip, onnx) and of the patch
+// encoders (onnx, dinov3), and the model file lookups of every backend that loads files.
 pub mod model_files;
+pub mod patch_input;
 pub mod segment_crops;
 
 #[cfg(feature = "graph")]
@@ -68,8 +70,13 @@ pub mod sam;
 #[cfg(feature = "dinov3")]
 pub mod dinov3;
 
+// The ViT building blocks shared by the candle patch encoders.
+#[cfg(feature = "dinov3")]
+pub(crate) mod vit;
+
 vlem_core::feature_hint!(Encoder, "label-text", "label-text");
 vlem_core::feature_hint!(Encoder, "clip", "clip");
 vlem_core::feature_hint!(Encoder, "onnx", "onnx");
+vlem_core::feature_hint!(Encoder, "dinov3", "dinov3");
 vlem_core::feature_hint!(Proposer, "sam", "sam");
 vlem_core::feature_hint!(Proposer, "graph", "graph");

@@ -6,7 +6,9 @@
 )]
 //! The DINOv3 backbone against `transformers`' DINOv3ViTModel: the goldens of
 //! `goldens/dinov3/make_dinov3_goldens.py` (tiny random-weight models in the Hugging Face
-//! layout), plus the behaviour around them (batching, grid shapes, missing files).
+//! layout), plus the behaviour around them (batching, grid shapes, missing files); the dino.txt
+//! heads against Meta's code; CLIP's tokenizer against Meta's; and the `dinov3` encoder (its
+//! goldens, parameters, file lookup and the shared conformance suite).
 #![cfg(feature = "dinov3")]
 
 use std::collections::HashMap;
@@ -15,7 +17,10 @@ use std::path::{Path, PathBuf};
 use candle_core::{Device, Tensor};
 use serde_json::Value;
 use vlem_backends::BackendError;
-use vlem_backends::dinov3::{DinoTxtHeads, Dinov3Backbone};
+use vlem_backends::dinov3::clip_bpe::{self, ClipBpe};
+use vlem_backends::dinov3::encoder::locate_files;
+use vlem_backends::dinov3::{DinoTxtHeads, Dinov3Backbone, Dinov3Encoder, Dinov3EncoderConfig};
+use vlem_core::{BuildContext, Encoder, RgbImage};
 
 const TOLERANCE: f32 = 1e-4;
 
@@ -282,3 +287,226 @@ fn dinotxt_text_tower_matches_meta_goldens() {
     assert!(e.contains("999"), "{e}");
     assert!(heads.text(&[]).is_err());
 }
+
+// --- The tokenizer and the `dinov3` encoder --------------------------------------------------
+
+/// The released BPE vocabulary, from the PyPI package `open_clip_torch` (installed with
+/// `--no-deps` by the README's test command).
+fn released_vocab() -> PathBuf {
+    let dir = vlem_backends::model_files::python_package_dir("open_clip").unwrap_or_else(|e| {
+        panic!(
+            "the tokenizer test needs bpe_simple_vocab_16e6.txt.gz from the Python package \
+             open_clip ({e}): python3 -m pip install --no-deps open_clip_torch==3.3.0"
+        )
+    });
+    dir.join(clip_bpe::VOCAB_FILE)
+}
+
+#[test]
+fn tokenizer_matches_the_reference() {
+    let bpe = ClipBpe::load(&released_vocab()).unwrap();
+    assert_eq!(bpe.vocab_size(), 49408);
+    assert_eq!((bpe.start_id(), bpe.end_id()), (49406, 49407));
+    let text = std::fs::read_to_string(
+        Path::new(env!("CARGO_MANIFEST_DIR")).join("goldens/clip_bpe/clip_bpe_goldens.json"),
+    )
+    .unwrap();
+    let g: Value = serde_json::from_str(&text).unwrap();
+    let context = g["context_length"].as_u64().unwrap() as usize;
+    let cases = g["cases"].as_array().unwrap();
+    assert_eq!(cases.len(), 20);
+    for case in cases {
+        let text = case["text"].as_str().unwrap();
+        let expected: Vec<u32> = case["ids"]
+            .as_array()
+            .unwrap()
+            .iter()
+            .map(|v| v.as_u64().unwrap() as u32)
+            .collect();
+        assert_eq!(bpe.tokenize(text, context), expected, "{text:?}");
+    }
+}
+
+fn encoder_goldens() -> Value {
+    goldens()["dinotxt"]["encoder"].clone()
+}
+
+fn tiny_encoder_config() -> Dinov3EncoderConfig {
+    let g = goldens()["dinotxt"].clone();
+    Dinov3EncoderConfig {
+        model_dir: Some(goldens_dir().join(g["backbone"].as_str().unwrap())),
+        dinotxt_weights: Some(goldens_dir().join(g["checkpoint"].as_str().unwrap())),
+        bpe_vocab: Some(goldens_dir().join(encoder_goldens()["bpe_vocab"].as_str().unwrap())),
+        text_heads: Some(g["text_heads"].as_u64().unwrap() as usize),
+        // The golden image is 64x48: this short side needs no resampling.
+        short_side: 48,
+        ..Dinov3EncoderConfig::default()
+    }
+}
+
+fn tiny_encoder() -> Dinov3Encoder {
+    Dinov3Encoder::from_config(tiny_encoder_config(), &BuildContext::default()).unwrap()
+}
+
+#[test]
+fn encoder_text_matches_meta_goldens() {
+    let encoder = tiny_encoder();
+    for case in encoder_goldens()["prompts"].as_array().unwrap() {
+        let text = case["text"].as_str().unwrap();
+        let ids: Vec<u32> = case["ids"]
+            .as_array()
+            .unwrap()
+            .iter()
+            .map(|v| v.as_u64().unwrap() as u32)
+            .collect();
+        assert_eq!(encoder.tokenizer().tokenize(text, 16), ids, "{text:?}");
+        let got = encoder.encode_text(text).unwrap();
+        let diff = max_abs_diff(&got, &floats(&case["embedding"]));
+        assert!(diff <= TOLERANCE, "{text:?}: max |diff| {diff}");
+    }
+}
+
+/// The golden image: pixel (x, y) = (37x + 11y, 3x + 71y + 5, 13xy + 7) mod 256.
+fn golden_image(width: u32, height: u32) -> RgbImage {
+    let mut data = Vec::with_capacity((3 * width * height) as usize);
+    for y in 0..height {
+        for x in 0..width {
+            data.push(((37 * x + 11 * y) % 256) as u8);
+            data.push(((3 * x + 71 * y + 5) % 256) as u8);
+            data.push(((13 * x * y + 7) % 256) as u8);
+        }
+    }
+    RgbImage::new(width, height, data).unwrap()
+}
+
+#[test]
+fn encoder_patch_grid_matches_meta_goldens() {
+    let g = encoder_goldens()["image"].clone();
+    let (width, height) = (
+        g["width"].as_u64().unwrap() as u32,
+        g["height"].as_u64().unwrap() as u32,
+    );
+    let encoder = tiny_encoder();
+    assert_eq!(encoder.input_size(width, height), (width, height));
+    let (gw, gh, grid) = encoder.patch_grid(&golden_image(width, height)).unwrap();
+    assert_eq!(
+        (u64::from(gw), u64::from(gh)),
+        (
+            g["grid_width"].as_u64().unwrap(),
+            g["grid_height"].as_u64().unwrap()
+        )
+    );
+    let diff = max_abs_diff(&grid, &floats(&g["patch_grid"]));
+    assert!(diff <= TOLERANCE, "max |diff| {diff}");
+    // The embeddings cover the frame; a pixel at a patch centre has that patch's embedding.
+    let e = encoder
+        .encode_image(&golden_image(width, height), &[])
+        .unwrap();
+    assert_eq!((e.width(), e.height(), e.dim()), (width, height, 32));
+}
+
+#[test]
+fn encoder_resizes_to_the_short_side_keeping_the_aspect_ratio() {
+    let config = Dinov3EncoderConfig {
+        short_side: 32,
+        ..tiny_encoder_config()
+    };
+    let encoder = Dinov3Encoder::from_config(config, &BuildContext::default()).unwrap();
+    assert_eq!(encoder.input_size(64, 48), (48, 32));
+    let (gw, gh, grid) = encoder.patch_grid(&golden_image(64, 48)).unwrap();
+    assert_eq!((gw, gh, grid.len()), (3, 2, 3 * 2 * 32));
+}
+
+#[test]
+fn encoder_parameters_are_checked() {
+    let build = |config: Dinov3EncoderConfig| {
+        Dinov3Encoder::from_config(config, &BuildContext::default())
+            .unwrap_err()
+            .to_string()
+    };
+    let err = build(Dinov3EncoderConfig {
+        short_side: 40,
+        ..tiny_encoder_config()
+    });
+    assert!(err.contains("multiple of the patch size 16"), "{err}");
+    let err = build(Dinov3EncoderConfig {
+        templates: vec!["a photo".to_owned()],
+        ..tiny_encoder_config()
+    });
+    assert!(err.contains("{}"), "{err}");
+    // The registry's parsing refuses unknown keys.
+    let params: toml::Table = toml::from_str("short_sid = 448").unwrap();
+    let err = vlem_backends::dinov3::encoder::build(&params, &BuildContext::default())
+        .err()
+        .unwrap()
+        .to_string();
+    assert!(err.contains("short_sid"), "{err}");
+}
+
+#[test]
+fn encoder_names_every_missing_file_and_where_to_get_it() {
+    let dir = tempfile::tempdir().unwrap();
+    let config = Dinov3EncoderConfig {
+        model_dir: Some(dir.path().to_path_buf()),
+        bpe_vocab: Some(released_vocab()),
+        ..Dinov3EncoderConfig::default()
+    };
+    let e = Dinov3Encoder::from_config(config, &BuildContext::default()).unwrap_err();
+    let BackendError::MissingModelFiles { missing, .. } = &e else {
+        panic!("{e:?}");
+    };
+    assert_eq!(
+        missing,
+        &vec![
+            "config.json",
+            "model.safetensors",
+            "dinov3_vitl16_dinotxt_vision_head_and_text_encoder-*.pth"
+        ]
+    );
+    let message = e.to_string();
+    assert!(message.contains("dinov3-downloads"), "{message}");
+    assert!(message.contains("open_clip_torch"), "{message}");
+    // A configured file that is not there is named as such.
+    let config = Dinov3EncoderConfig {
+        dinotxt_weights: Some(dir.path().join("nope.pth")),
+        ..tiny_encoder_config()
+    };
+    let e = Dinov3Encoder::from_config(config, &BuildContext::default()).unwrap_err();
+    assert!(e.to_string().contains("nope.pth"), "{e}");
+}
+
+#[test]
+fn encoder_finds_its_files_in_the_model_folder() {
+    // The layout the docs ask for: the backbone folder also holds the two dino.txt files.
+    let dir = tempfile::tempdir().unwrap();
+    let tiny = goldens_dir().join("tiny");
+    for name in ["config.json", "model.safetensors"] {
+        std::fs::copy(tiny.join(name), dir.path().join(name)).unwrap();
+    }
+    std::fs::copy(
+        goldens_dir().join("tiny-dinotxt.pth"),
+        dir.path()
+            .join("dinov3_vitl16_dinotxt_vision_head_and_text_encoder-a442d8f5.pth"),
+    )
+    .unwrap();
+    std::fs::copy(
+        goldens_dir().join("tiny-bpe.txt.gz"),
+        dir.path().join(clip_bpe::VOCAB_FILE),
+    )
+    .unwrap();
+    let files = locate_files(Some(dir.path()), None, None).unwrap();
+    assert_eq!(files.bpe_vocab, dir.path().join(clip_bpe::VOCAB_FILE));
+    let config = Dinov3EncoderConfig {
+        model_dir: Some(dir.path().to_path_buf()),
+        text_heads: Some(3),
+        ..Dinov3EncoderConfig::default()
+    };
+    let encoder = Dinov3Encoder::from_config(config, &BuildContext::default()).unwrap();
+    assert_eq!(encoder.dim(), 32);
+}
+
+fn build_tiny() -> Box<dyn Encoder> {
+    Box::new(tiny_encoder())
+}
+
+vlem_testkit::encoder_conformance!(build_tiny, text = "a chair");

@@ -25,12 +25,20 @@ dino.txt (key "dinotxt" of the goldens): Meta's own code (github.com/facebookres
 `dinov3/eval/text/`, the code behind the hub entry `dinov3_vitl16_dinotxt_tet1280d20h24l`) runs
 with the `tiny` backbone, converted to the names of Meta's DinoVisionTransformer (the script
 checks that both backbones agree to 1e-5), under a random 2-block vision head (SwiGLU, layer
-scales) and a random 2-layer causal text tower (vocabulary 50, 16 positions, width 24, 3 heads,
+scales) and a random 2-layer causal text tower (vocabulary 520, 16 positions, width 24, 3 heads,
 projection to 64 = 2 x 32). The head and text weights are saved as Meta saves the released
 `dinov3_vitl16_dinotxt_vision_head_and_text_encoder-*.pth`: torch.save of the state dict without
 the backbone (`tiny-dinotxt.pth`). Goldens: image embeddings and head patch tokens for both
 sizes, text embeddings for three id sequences (one longer than the context, cut as Meta's
 tokenizer cuts it).
+
+The `dinov3` encoder (key "encoder"): a CLIP BPE merge list of six merges, gzipped as the
+released `bpe_simple_vocab_16e6.txt.gz` is (`tiny-bpe.txt.gz`; 512 byte symbols + 6 merges + 2
+special tokens = the 520 ids of the tiny text tower), tokenised with Meta's own tokenizer
+(`dinov3/eval/text/tokenizer.py`); for three prompts, the ids and the normalised second half of
+the text embedding (what the encoder gives for a query); and for one 64x48 RGB image that needs
+no resizing (input pixel (x, y) = (37x + 11y, 3x + 71y + 5, 13xy + 7) mod 256), the head patch
+tokens after ImageNet normalisation, each L2-normalised (the encoder's patch grid).
 
 Requirements (development machine only, never in CI: torch is large):
     pip install torch transformers safetensors
@@ -179,14 +187,17 @@ def native_backbone_state(hf: DINOv3ViTModel) -> dict:
     return out
 
 
-# The tiny dino.txt text tower: vocabulary of 50 ids (49 = end of text, the largest, as in CLIP's
-# vocabulary; 48 = start of text), 16 positions, width 24 in 3 heads, 2 layers.
-TEXT_VOCAB, TEXT_CONTEXT, TEXT_DIM, TEXT_HEADS, TEXT_LAYERS = 50, 16, 24, 3, 2
+# The tiny dino.txt text tower: vocabulary of 520 ids (519 = end of text, the largest, as in
+# CLIP's vocabulary; 518 = start of text), 16 positions, width 24 in 3 heads, 2 layers. The
+# vocabulary is that of CLIP's tokenizer over the six merges of TINY_MERGES.
+TEXT_VOCAB, TEXT_CONTEXT, TEXT_DIM, TEXT_HEADS, TEXT_LAYERS = 520, 16, 24, 3, 2
 TEXT_IDS = [
-    [48, 5, 17, 33, 2, 49],
-    [48, 40, 49],
-    [48] + [(7 * i + 3) % 47 + 1 for i in range(20)] + [49],  # longer than the context: truncated
+    [518, 5, 17, 330, 2, 519],
+    [518, 400, 519],
+    [518] + [(7 * i + 3) % 511 + 1 for i in range(20)] + [519],  # longer than the context: truncated
 ]
+TINY_MERGES = ["c h", "a i", "ch ai", "chai r</w>", "t a", "ta ble</w>"]
+PROMPTS = ["chair", "a Table!", "a photo of a chair next to the table and a lamp"]
 
 
 def tokenize_like_dinov3(ids: list) -> list:
@@ -316,7 +327,9 @@ def make_dinotxt_goldens() -> dict:
         with torch.no_grad():
             emb = model.encode_text(torch.tensor([padded]))
         texts.append({"ids": ids, "padded_ids": padded, "text_embedding": [float(v) for v in emb[0]]})
+    encoder = make_encoder_goldens(model, c.hidden_size)
     return {
+        "encoder": encoder,
         "backbone": "tiny",
         "checkpoint": "tiny-dinotxt.pth",
         "vision_heads": c.num_attention_heads,
@@ -325,6 +338,60 @@ def make_dinotxt_goldens() -> dict:
         "end_token": TEXT_VOCAB - 1,
         "images": images,
         "texts": texts,
+    }
+
+
+def encoder_image(height: int, width: int) -> np.ndarray:
+    """The encoder golden's RGB image, uint8 (height, width, 3)."""
+    y, x = np.mgrid[0:height, 0:width]
+    rgb = np.stack([37 * x + 11 * y, 3 * x + 71 * y + 5, 13 * x * y + 7], axis=-1)
+    return (rgb % 256).astype(np.uint8)
+
+
+def make_encoder_goldens(model, width: int) -> dict:
+    """What the `dinov3` encoder must give over the tiny files: prompts tokenised by Meta's
+    tokenizer over the tiny merge list, their normalised second text half, and one image's
+    normalised head patch tokens."""
+    import gzip
+
+    from dinov3.eval.text.tokenizer import Tokenizer
+
+    vocab_path = HERE / "tiny-bpe.txt.gz"
+    # mtime=0: the same bytes on every run. No newline after the last merge: OpenAI's reader
+    # would take the empty line after it for a merge (the released file is cut long before its end).
+    with gzip.GzipFile(vocab_path, "wb", mtime=0) as f:
+        f.write(("#version: tiny\n" + "\n".join(TINY_MERGES)).encode())
+    tokenizer = Tokenizer(str(vocab_path))
+    assert len(tokenizer.encoder) == TEXT_VOCAB, len(tokenizer.encoder)
+    prompts = []
+    for text in PROMPTS:
+        ids = tokenizer.tokenize([text], context_length=TEXT_CONTEXT)
+        with torch.no_grad():
+            emb = model.encode_text(ids)[0]
+        half = torch.nn.functional.normalize(emb[width:], dim=-1)
+        row = ids[0].tolist()
+        while row and row[-1] == 0:
+            row.pop()
+        prompts.append({"text": text, "ids": row, "embedding": [float(v) for v in half]})
+
+    height, image_width = 48, 64
+    rgb = torch.from_numpy(encoder_image(height, image_width)).float() / 255.0
+    mean = torch.tensor([0.485, 0.456, 0.406])
+    std = torch.tensor([0.229, 0.224, 0.225])
+    x = ((rgb - mean) / std).permute(2, 0, 1).unsqueeze(0)
+    with torch.no_grad():
+        _, patches, _ = model.encode_image_with_patch_tokens(x)
+    grid = torch.nn.functional.normalize(patches[0], dim=-1)
+    return {
+        "bpe_vocab": "tiny-bpe.txt.gz",
+        "prompts": prompts,
+        "image": {
+            "width": image_width,
+            "height": height,
+            "grid_width": image_width // 16,
+            "grid_height": height // 16,
+            "patch_grid": [float(v) for v in grid.flatten()],
+        },
     }
 
 

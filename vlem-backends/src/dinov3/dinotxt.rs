@@ -17,7 +17,7 @@
 //!   (fused qkv without bias, exact-GELU MLP, no layer scale), a final layer norm, a linear
 //!   projection without bias, pooled at the end-of-text token (the largest id).
 //!
-//! Tokenising text is not part of this module (see the notes in `mod.rs`).
+//! Tokenising text is [`super::clip_bpe`]'s job; the encoder joins the parts ([`super::encoder`]).
 
 use std::collections::HashMap;
 use std::path::Path;
@@ -25,8 +25,9 @@ use std::path::Path;
 use candle_core::{D, DType, Device, Tensor};
 use candle_nn::{LayerNorm, Module};
 
-use super::model::{Activation, Attention, BackboneOutput, Block, Linear, Mlp, Weights};
+use super::model::BackboneOutput;
 use crate::error::BackendError;
+use crate::vit::{Activation, Attention, Block, Linear, Mlp, Weights};
 
 /// The checkpoint's name in messages.
 pub const MODEL: &str = "dino.txt";
@@ -98,6 +99,21 @@ impl DinoTxtHeads {
             .map_err(|e| invalid(format!("cannot read it as a PyTorch state dict: {e}")))?;
         let tensors: HashMap<String, Tensor> = tensors.into_iter().collect();
         Self::from_weights(&Weights::new(tensors), vision_heads, text_heads).map_err(invalid)
+    }
+
+    /// The heads from tensors named as in the released checkpoint, for benchmarks that fill the
+    /// full-size architecture with random weights.
+    ///
+    /// # Errors
+    /// [`BackendError::InvalidParams`] naming a missing or misshapen tensor.
+    #[doc(hidden)]
+    pub fn from_tensors(
+        tensors: HashMap<String, Tensor>,
+        vision_heads: usize,
+        text_heads: Option<usize>,
+    ) -> Result<Self, BackendError> {
+        Self::from_weights(&Weights::new(tensors), vision_heads, text_heads)
+            .map_err(BackendError::InvalidParams)
     }
 
     /// Builds the heads from tensors named as in Meta's `DINOTxt` state dict.
@@ -237,6 +253,11 @@ impl DinoTxtHeads {
     /// Text positions (77 for the released model), start and end tokens included.
     pub fn context_length(&self) -> usize {
         self.text.positions.dim(0).unwrap_or(0)
+    }
+
+    /// Entries of the text tower's token embedding (49408 for the released model).
+    pub fn vocab_size(&self) -> usize {
+        self.text.token_embedding.dim(0).unwrap_or(0)
     }
 
     /// Vision head blocks.

@@ -8,16 +8,18 @@
 //!   the CLS and register tokens apart;
 //! - the dino.txt vision head and text tower ([`dinotxt`]), read from Meta's released `.pth`
 //!   checkpoint, which turn the ViT-L/16 tokens into per-patch embeddings and text into the
-//!   same space.
-//!
-//! Not here yet: tokenising text (OpenAI CLIP's BPE, `bpe_simple_vocab_16e6.txt.gz`) and the
-//! registered encoder; without a verified tokenizer the text side cannot answer queries, so no
-//! encoder is registered.
+//!   same space;
+//! - CLIP's BPE tokenizer ([`clip_bpe`]) that dino.txt's text tower was trained with;
+//! - the registered patch encoder `dinov3` ([`encoder`]), which joins the three.
 
+pub mod clip_bpe;
 pub mod dinotxt;
+pub mod encoder;
 pub mod model;
 
+pub use clip_bpe::ClipBpe;
 pub use dinotxt::{DinoTxtHeads, TEXT_HEAD_DIM, VisionOutput};
+pub use encoder::{Dinov3Encoder, Dinov3EncoderConfig};
 pub use model::{
     Activation, BackboneOutput, DINOV3_INSTALL_HINT, Dinov3Backbone, Dinov3Config, rope_angles,
 };

@@ -24,14 +24,15 @@
 //! Training-only parts are left out: the mask token (read, never used at inference), drop path,
 //! the random shift / jitter / rescale of RoPE coordinates.
 
-use std::collections::HashMap;
 use std::path::{Path, PathBuf};
 
-use candle_core::{D, DType, Device, Tensor};
+use candle_core::{DType, Device, Tensor};
 use candle_nn::{LayerNorm, Module};
 use serde_json::{Map, Value};
 
 use crate::error::BackendError;
+pub use crate::vit::{Activation, rope_angles};
+use crate::vit::{Attention, Block, Linear, Mlp, Rope, Weights};
 
 /// The model's name in messages.
 pub const MODEL: &str = "DINOv3 ViT";
@@ -45,37 +46,6 @@ pub const DINOV3_INSTALL_HINT: &str = "DINOv3 weights are gated: accept the lice
      connected machine `hf download facebook/dinov3-vitl16-pretrain-lvd1689m config.json \
      model.safetensors --local-dir DIR` (older huggingface_hub: `huggingface-cli download` with \
      the same arguments), copy DIR here and name it in the config";
-
-/// A transformer MLP activation, from `hidden_act` in `config.json`.
-#[derive(Clone, Copy, Debug, PartialEq, Eq)]
-pub enum Activation {
-    /// `gelu`: the exact GELU, `x · Φ(x)` (erf); the ViT-S/B/L checkpoints.
-    Gelu,
-    /// `gelu_new`, `gelu_pytorch_tanh`, `gelu_fast`: the tanh approximation of GELU.
-    GeluTanh,
-    /// `silu` (`swish`): `x · σ(x)`; the gated MLP of the "plus" checkpoints.
-    Silu,
-}
-
-impl Activation {
-    /// The activation named `name` in `transformers`' `ACT2FN`, where it is one of these.
-    pub fn from_hf_name(name: &str) -> Option<Self> {
-        match name {
-            "gelu" => Some(Self::Gelu),
-            "gelu_new" | "gelu_pytorch_tanh" | "gelu_fast" => Some(Self::GeluTanh),
-            "silu" | "swish" => Some(Self::Silu),
-            _ => None,
-        }
-    }
-
-    pub(crate) fn apply(self, x: &Tensor) -> candle_core::Result<Tensor> {
-        match self {
-            Self::Gelu => x.gelu_erf(),
-            Self::GeluTanh => x.gelu(),
-            Self::Silu => x.silu(),
-        }
-    }
-}
 
 /// A `DINOv3ViTModel` `config.json`: what the forward pass needs of it.
 #[derive(Clone, Debug, PartialEq)]
@@ -283,291 +253,6 @@ fn square(m: &Map<String, Value>, key: &str, default: usize) -> Result<usize, St
     }
 }
 
-/// Named tensors with checked shapes, widened to f32: the loading side of every module here.
-pub(crate) struct Weights {
-    tensors: HashMap<String, Tensor>,
-}
-
-impl Weights {
-    pub(crate) fn new(tensors: HashMap<String, Tensor>) -> Self {
-        Self { tensors }
-    }
-
-    pub(crate) fn contains(&self, name: &str) -> bool {
-        self.tensors.contains_key(name)
-    }
-
-    /// The shape of tensor `name`, if there is one.
-    pub(crate) fn dims(&self, name: &str) -> Option<Vec<usize>> {
-        self.tensors.get(name).map(|t| t.dims().to_vec())
-    }
-
-    /// The tensor `name`, which must have `shape`.
-    pub(crate) fn get(&self, name: &str, shape: &[usize]) -> Result<Tensor, String> {
-        let t = self
-            .tensors
-            .get(name)
-            .ok_or_else(|| format!("tensor {name} is missing"))?;
-        if t.dims() != shape {
-            return Err(format!(
-                "tensor {name} has shape {:?}, expected {shape:?}",
-                t.dims()
-            ));
-        }
-        t.to_dtype(DType::F32)
-            .map_err(|e| format!("tensor {name}: {e}"))
-    }
-
-    pub(crate) fn linear(
-        &self,
-        prefix: &str,
-        inputs: usize,
-        outputs: usize,
-        bias: bool,
-    ) -> Result<Linear, String> {
-        let weight = self.get(&format!("{prefix}.weight"), &[outputs, inputs])?;
-        let bias = if bias {
-            Some(self.get(&format!("{prefix}.bias"), &[outputs])?)
-        } else {
-            None
-        };
-        Linear::new(&weight, bias).map_err(|e| format!("{prefix}: {e}"))
-    }
-
-    pub(crate) fn layer_norm(
-        &self,
-        prefix: &str,
-        width: usize,
-        eps: f64,
-    ) -> Result<LayerNorm, String> {
-        Ok(LayerNorm::new(
-            self.get(&format!("{prefix}.weight"), &[width])?,
-            self.get(&format!("{prefix}.bias"), &[width])?,
-            eps,
-        ))
-    }
-}
-
-/// `x · Wᵀ + b` with `Wᵀ` stored contiguous.
-#[derive(Clone, Debug)]
-pub(crate) struct Linear {
-    weight_t: Tensor,
-    bias: Option<Tensor>,
-}
-
-impl Linear {
-    /// From a `(outputs, inputs)` weight as PyTorch stores it.
-    pub(crate) fn new(weight: &Tensor, bias: Option<Tensor>) -> candle_core::Result<Self> {
-        Ok(Self {
-            weight_t: weight.t()?.contiguous()?,
-            bias,
-        })
-    }
-
-    /// Over the last dimension of `x`, whatever its leading dimensions (flattened to one matrix
-    /// product, which is what candle's CPU matmul is fastest at).
-    pub(crate) fn forward(&self, x: &Tensor) -> candle_core::Result<Tensor> {
-        let mut dims = x.dims().to_vec();
-        let inputs = x.dim(D::Minus1)?;
-        let rows = x.elem_count() / inputs.max(1);
-        let y = x.reshape((rows, inputs))?.matmul(&self.weight_t)?;
-        let y = match &self.bias {
-            Some(b) => y.broadcast_add(b)?,
-            None => y,
-        };
-        if let Some(last) = dims.last_mut() {
-            *last = self.weight_t.dim(1)?;
-        }
-        y.reshape(dims)
-    }
-}
-
-/// The cosines and sines of 2-D RoPE for an `h × w` patch grid, `(h·w, head_dim)` each.
-#[derive(Clone, Debug)]
-pub(crate) struct Rope {
-    cos: Tensor,
-    sin: Tensor,
-}
-
-/// RoPE angles, row-major over the grid: `(h·w) × head_dim` values laid out as
-/// `[y·f₀.., x·f₀.., y·f₀.., x·f₀..]`, each times 2π. Computed in f32 like `transformers`.
-pub fn rope_angles(grid_h: usize, grid_w: usize, head_dim: usize, theta: f64) -> Vec<f32> {
-    let quarter = head_dim / 4;
-    let freqs: Vec<f32> = (0..quarter)
-        .map(|k| {
-            let exponent = (k as f32) * (4.0 / head_dim as f32);
-            1.0 / (theta as f32).powf(exponent)
-        })
-        .collect();
-    let coord = |i: usize, n: usize| 2.0 * ((i as f32 + 0.5) / n as f32) - 1.0;
-    let two_pi = 2.0 * std::f32::consts::PI;
-    let mut out = Vec::with_capacity(grid_h * grid_w * head_dim);
-    for i in 0..grid_h {
-        let y = coord(i, grid_h);
-        for j in 0..grid_w {
-            let x = coord(j, grid_w);
-            for _ in 0..2 {
-                out.extend(freqs.iter().map(|f| two_pi * y * f));
-                out.extend(freqs.iter().map(|f| two_pi * x * f));
-            }
-        }
-    }
-    out
-}
-
-impl Rope {
-    pub(crate) fn new(
-        grid_h: usize,
-        grid_w: usize,
-        head_dim: usize,
-        theta: f64,
-        device: &Device,
-    ) -> candle_core::Result<Self> {
-        let angles = rope_angles(grid_h, grid_w, head_dim, theta);
-        let cos: Vec<f32> = angles.iter().map(|a| a.cos()).collect();
-        let sin: Vec<f32> = angles.iter().map(|a| a.sin()).collect();
-        Ok(Self {
-            cos: Tensor::from_vec(cos, (grid_h * grid_w, head_dim), device)?,
-            sin: Tensor::from_vec(sin, (grid_h * grid_w, head_dim), device)?,
-        })
-    }
-
-    /// Rotates the last `h·w` tokens of `x` (`(batch, heads, tokens, head_dim)`), leaving the
-    /// prefix tokens (CLS, registers) as they are.
-    fn apply(&self, x: &Tensor) -> candle_core::Result<Tensor> {
-        let (_, _, tokens, head_dim) = x.dims4()?;
-        let patches = self.cos.dim(0)?;
-        let prefix = tokens.checked_sub(patches).ok_or_else(|| {
-            candle_core::Error::Msg(format!(
-                "RoPE for {patches} patches applied to {tokens} tokens"
-            ))
-        })?;
-        let p = x.narrow(2, prefix, patches)?;
-        let half = head_dim / 2;
-        let rotated = Tensor::cat(
-            &[
-                &p.narrow(D::Minus1, half, half)?.neg()?,
-                &p.narrow(D::Minus1, 0, half)?,
-            ],
-            D::Minus1,
-        )?;
-        let p = (p.broadcast_mul(&self.cos)? + rotated.broadcast_mul(&self.sin)?)?;
-        if prefix == 0 {
-            Ok(p)
-        } else {
-            Tensor::cat(&[&x.narrow(2, 0, prefix)?, &p], 2)
-        }
-    }
-}
-
-/// Multi-head self-attention with the query, key and value projections fused into one matrix
-/// product, optional RoPE on the patch tokens and an optional causal mask.
-#[derive(Clone, Debug)]
-pub(crate) struct Attention {
-    pub(crate) qkv: Linear,
-    pub(crate) out: Linear,
-    pub(crate) heads: usize,
-}
-
-impl Attention {
-    /// `x`: `(batch, tokens, width)`.
-    pub(crate) fn forward(
-        &self,
-        x: &Tensor,
-        rope: Option<&Rope>,
-        mask: Option<&Tensor>,
-    ) -> candle_core::Result<Tensor> {
-        let (batch, tokens, width) = x.dims3()?;
-        let head_dim = width / self.heads;
-        let qkv = self
-            .qkv
-            .forward(x)?
-            .reshape((batch, tokens, 3, self.heads, head_dim))?
-            .permute((2, 0, 3, 1, 4))?; // (3, batch, heads, tokens, head_dim)
-        let mut q = qkv.get(0)?.contiguous()?;
-        let mut k = qkv.get(1)?.contiguous()?;
-        let v = qkv.get(2)?.contiguous()?;
-        if let Some(rope) = rope {
-            q = rope.apply(&q)?;
-            k = rope.apply(&k)?;
-        }
-        let q = (q * (head_dim as f64).powf(-0.5))?;
-        let logits = q.matmul(&k.t()?)?;
-        let logits = match mask {
-            Some(m) => logits.broadcast_add(m)?,
-            None => logits,
-        };
-        let weights = candle_nn::ops::softmax_last_dim(&logits)?;
-        let mixed = weights
-            .matmul(&v)?
-            .transpose(1, 2)?
-            .reshape((batch, tokens, width))?;
-        self.out.forward(&mixed)
-    }
-}
-
-/// A transformer MLP: plain (`down(act(up x))`) or gated (`down(act(gate x) ⊙ up x)`).
-#[derive(Clone, Debug)]
-pub(crate) enum Mlp {
-    Plain {
-        up: Linear,
-        down: Linear,
-        act: Activation,
-    },
-    Gated {
-        gate: Linear,
-        up: Linear,
-        down: Linear,
-        act: Activation,
-    },
-}
-
-impl Mlp {
-    fn forward(&self, x: &Tensor) -> candle_core::Result<Tensor> {
-        match self {
-            Self::Plain { up, down, act } => down.forward(&act.apply(&up.forward(x)?)?),
-            Self::Gated {
-                gate,
-                up,
-                down,
-                act,
-            } => down.forward(&(act.apply(&gate.forward(x)?)? * up.forward(x)?)?),
-        }
-    }
-}
-
-/// One pre-norm transformer block with optional per-channel layer scales:
-/// `x += ls1 ⊙ attn(norm1 x)`, `x += ls2 ⊙ mlp(norm2 x)`.
-#[derive(Clone, Debug)]
-pub(crate) struct Block {
-    pub(crate) norm1: LayerNorm,
-    pub(crate) attention: Attention,
-    pub(crate) scale1: Option<Tensor>,
-    pub(crate) norm2: LayerNorm,
-    pub(crate) mlp: Mlp,
-    pub(crate) scale2: Option<Tensor>,
-}
-
-impl Block {
-    pub(crate) fn forward(
-        &self,
-        x: &Tensor,
-        rope: Option<&Rope>,
-        mask: Option<&Tensor>,
-    ) -> candle_core::Result<Tensor> {
-        let scaled = |y: Tensor, s: &Option<Tensor>| match s {
-            Some(s) => y.broadcast_mul(s),
-            None => Ok(y),
-        };
-        let a = self
-            .attention
-            .forward(&self.norm1.forward(x)?, rope, mask)?;
-        let x = (x + scaled(a, &self.scale1)?)?;
-        let m = self.mlp.forward(&self.norm2.forward(&x)?)?;
-        x + scaled(m, &self.scale2)?
-    }
-}
-
 /// What the backbone gives for a batch of images: every token after the final layer norm
 /// (`transformers`' `last_hidden_state`), and the patch grid's shape.
 #[derive(Clone, Debug)]
@@ -685,6 +370,20 @@ impl Dinov3Backbone {
             })?;
         backbone.dir = dir;
         Ok(backbone)
+    }
+
+    /// The backbone from tensors named as in a hub `model.safetensors`, for benchmarks that
+    /// fill a full-size architecture with random weights.
+    ///
+    /// # Errors
+    /// [`BackendError::InvalidParams`] naming a missing or misshapen tensor.
+    #[doc(hidden)]
+    pub fn from_tensors(
+        config: &Dinov3Config,
+        tensors: std::collections::HashMap<String, Tensor>,
+    ) -> Result<Self, BackendError> {
+        Self::from_weights(config, &Weights::new(tensors), "", &Device::Cpu)
+            .map_err(BackendError::InvalidParams)
     }
 
     /// Builds the backbone from tensors named as in a `DINOv3ViTModel` state dict, each name

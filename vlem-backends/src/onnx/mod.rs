@@ -64,8 +64,6 @@ pub mod runtime;
 
 use std::path::PathBuf;
 
-use image::imageops::{self, FilterType};
-use image::{ImageBuffer, Rgb};
 use ort::value::TensorElementType;
 use serde::Deserialize;
 use tokenizers::{Tokenizer, TruncationParams};
@@ -379,7 +377,7 @@ impl OnnxEncoder {
     /// # Errors
     /// [`BackendError::InvalidInput`] for an empty image.
     pub fn preprocess(&self, image: &RgbImage) -> Result<Vec<f32>, BackendError> {
-        preprocess(
+        crate::patch_input::normalised_planes(
             image,
             self.image.width,
             self.image.height,
@@ -542,53 +540,6 @@ fn mean_of_unit(rows: &[Vec<f32>], dim: usize) -> Option<Vec<f32>> {
         mean.iter_mut().zip(&row).for_each(|(m, x)| *m += x);
     }
     vlem_core::embeddings::normalise(&mut mean).then_some(mean)
-}
-
-/// `3 × height × width` values: `image` resampled to `width × height` if it has another size,
-/// each channel normalised as `(x / 255 - mean) / std`.
-fn preprocess(
-    image: &RgbImage,
-    width: u32,
-    height: u32,
-    mean: [f32; 3],
-    std: [f32; 3],
-) -> Result<Vec<f32>, BackendError> {
-    if image.width() == 0 || image.height() == 0 {
-        return Err(BackendError::InvalidInput(format!(
-            "cannot embed an empty {}x{} image",
-            image.width(),
-            image.height()
-        )));
-    }
-    // Pixels in [0, 1] units, interleaved RGB.
-    let pixels: Vec<f32> = if image.width() == width && image.height() == height {
-        image
-            .as_raw()
-            .iter()
-            .map(|&b| f32::from(b) / 255.0)
-            .collect()
-    } else {
-        let source: ImageBuffer<Rgb<f32>, Vec<f32>> = ImageBuffer::from_raw(
-            image.width(),
-            image.height(),
-            image
-                .as_raw()
-                .iter()
-                .map(|&b| f32::from(b) / 255.0)
-                .collect(),
-        )
-        .ok_or_else(|| BackendError::InvalidInput("inconsistent image buffer".to_owned()))?;
-        imageops::resize(&source, width, height, FilterType::CatmullRom)
-            .into_raw()
-            .into_iter()
-            .map(|x| x.clamp(0.0, 1.0))
-            .collect()
-    };
-    let mut out = Vec::with_capacity(pixels.len());
-    for c in 0..3 {
-        out.extend(pixels.chunks_exact(3).map(|p| (p[c] - mean[c]) / std[c]));
-    }
-    Ok(out)
 }
 
 /// Checks the image parameters that need no model.

@@ -1,0 +1,93 @@
+//! The patch-embedding pipeline end to end: `configs/synthetic-dinov3.toml` (synthetic scene, the
+//! `dinov3` encoder on the tiny random-weight DINOv3 + dino.txt committed in
+//! `vlem-backends/goldens/dinov3/`, a point-cloud map) built through the registry as the `vlem`
+//! binary builds it. Checks that every pixel with depth becomes a map point (a patch encoder
+//! embeds the whole frame), that the map has the patch embedding's dimension and that text
+//! queries score every point with a finite normalised cosine.
+#![cfg(feature = "dinov3")]
+#![allow(
+    clippy::unwrap_used,
+    clippy::expect_used,
+    clippy::panic,
+    reason = "tests"
+)]
+
+// Link the crates whose stages the config names (registrations of unreferenced crates vanish).
+use vlem_backends as _;
+use vlem_maps as _;
+use vlem_trackers as _;
+
+use std::path::PathBuf;
+
+use vlem_core::pipeline::Pipeline;
+use vlem_core::types::valid_depth;
+use vlem_core::{BuildContext, Config};
+
+fn configs() -> PathBuf {
+    PathBuf::from(env!("CARGO_MANIFEST_DIR")).join("configs")
+}
+
+/// The shipped config, shrunk to `frames` frames of 160x120 (the short side along).
+fn config(frames: usize) -> (Config, BuildContext) {
+    let mut config = Config::from_file(&configs().join("synthetic-dinov3.toml")).unwrap();
+    let synthetic = config.dataset.synthetic.as_mut().unwrap();
+    synthetic.frames = frames;
+    synthetic.width = 160;
+    synthetic.height = 120;
+    let encoder = config.encoder.as_mut().unwrap();
+    encoder.params.insert("short_side".into(), 112.into());
+    let ctx = BuildContext {
+        config_dir: configs(),
+        embedding_dim: None,
+    };
+    (config, ctx)
+}
+
+#[test]
+fn every_pixel_with_depth_becomes_a_point_and_queries_score_them() {
+    let (config, ctx) = config(2);
+    let mut source = vlem_datasets::open(&config.dataset, &ctx.config_dir).unwrap();
+    let frame = source.frame(0).unwrap();
+    let (w, h) = (frame.colour.width(), frame.colour.height());
+    let with_depth = (0..h)
+        .flat_map(|v| (0..w).map(move |u| (u, v)))
+        .filter(|&(u, v)| frame.depth.get(u, v).and_then(valid_depth).is_some())
+        .count();
+    assert!(with_depth > 0);
+
+    let mut pipeline = Pipeline::from_config(&config, &ctx).unwrap();
+    let encoder = pipeline.encoder().unwrap();
+    assert_eq!((encoder.name(), encoder.dim()), ("dinov3", 32));
+    assert!(!encoder.needs_regions());
+
+    // One frame: one point per pixel with depth.
+    let mut one = vlem_datasets::open(&config.dataset, &ctx.config_dir).unwrap();
+    let mut first = Pipeline::from_config(&config, &ctx).unwrap();
+    let report = first.run(one.as_mut(), Some(1), &|_| {}).unwrap();
+    assert_eq!(report.frames_processed, 1);
+    assert_eq!(first.map().unwrap().len(), with_depth);
+
+    let report = pipeline.run(source.as_mut(), None, &|_| {}).unwrap();
+    assert_eq!(report.frames_processed, 2);
+    assert!(report.stage_ms.contains_key("encode"));
+    let map = pipeline.map().unwrap();
+    assert_eq!(map.dim(), 32);
+    let encoder = pipeline.encoder().unwrap();
+    let mut scores = Vec::new();
+    let mut previous: Option<Vec<f32>> = None;
+    for text in &config.query.texts {
+        let query = encoder.encode_text(text).unwrap();
+        map.similarity(&query, &mut scores).unwrap();
+        assert_eq!(scores.len(), map.len());
+        assert!(
+            scores
+                .iter()
+                .all(|s| s.is_finite() && (-1e-4..=1.0 + 1e-4).contains(s)),
+            "{text}: scores must be finite normalised cosines"
+        );
+        if let Some(p) = &previous {
+            assert!(p.iter().zip(&scores).any(|(a, b)| (a - b).abs() > 1e-4));
+        }
+        previous = Some(scores.clone());
+    }
+}
