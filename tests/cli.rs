@@ -187,7 +187,7 @@ fn config_errors_name_the_problem() {
     let err = run("[encoder]\nkind = \"siglip\"\n[map]\nkind = \"point-cloud\"\n");
     assert!(
         err.contains(
-            "unknown encoder `siglip` (known: clip, colour-names, dinov3, label-text, onnx)"
+            "unknown encoder `siglip` (known: clip, colour-names, dinov3, label-text, naradio, onnx)"
         ),
         "{err}"
     );

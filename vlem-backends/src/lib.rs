@@ -31,9 +31,13 @@
 //!   CLIP's BPE tokenizer on candle; a patch encoder: the whole frame's patch grid, interpolated
 //!   per pixel (no proposer). Needs the Hugging Face backbone folder, the dino.txt checkpoint and
 //!   the BPE vocabulary.
+//! - `naradio` (feature `naradio`): module `naradio`, RayFronts' NARADIO on candle: RADIOv2.5
+//!   (B/16 or L/16) with NACLIP's key-key attention and Gaussian prior in its last block, each
+//!   patch token mapped by the `siglip` adaptor into SigLIP's text space, queries through the
+//!   SigLIP text tower; a patch encoder. Needs a model folder made by `convert_radio.py`.
 //!
-//! NARADIO (`naradio`) will live here too. The weight-free reference encoder, and the how-to for
-//! writing one, is the plugin `plugins/vlem-plugin-colour-names`.
+//! The weight-free reference encoder, and the how-to for writing one, is the plugin
+//! `plugins/vlem-plugin-colour-names`.
 //!
 //! Binaries must reference this crate (`use vlem_backends as _;`) or the linker drops the
 //! registrations. The crate declares the cargo feature of each backend with
@@ -53,7 +57,7 @@ pub mod minilm;
 pub mod clip;
 
 // Always compiled: the shared preprocessing of the segment encoders (clip, onnx) and of the patch
-// encoders (onnx, dinov3), and the model file lookups of every backend that loads files.
+// encoders (onnx, dinov3, naradio), and the model file lookups of every backend that loads files.
 pub mod model_files;
 pub mod patch_input;
 pub mod segment_crops;
@@ -70,13 +74,21 @@ pub mod sam;
 #[cfg(feature = "dinov3")]
 pub mod dinov3;
 
+#[cfg(feature = "naradio")]
+pub mod naradio;
+
 // The ViT building blocks shared by the candle patch encoders.
-#[cfg(feature = "dinov3")]
+#[cfg(any(feature = "dinov3", feature = "naradio"))]
+#[cfg_attr(
+    not(feature = "dinov3"),
+    allow(dead_code, reason = "naradio alone uses a subset of the ViT pieces")
+)]
 pub(crate) mod vit;
 
 vlem_core::feature_hint!(Encoder, "label-text", "label-text");
 vlem_core::feature_hint!(Encoder, "clip", "clip");
 vlem_core::feature_hint!(Encoder, "onnx", "onnx");
 vlem_core::feature_hint!(Encoder, "dinov3", "dinov3");
+vlem_core::feature_hint!(Encoder, "naradio", "naradio");
 vlem_core::feature_hint!(Proposer, "sam", "sam");
 vlem_core::feature_hint!(Proposer, "graph", "graph");

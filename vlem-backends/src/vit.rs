@@ -123,6 +123,15 @@ impl Linear {
         })
     }
 
+    /// The output width.
+    #[cfg_attr(
+        not(feature = "naradio"),
+        allow(dead_code, reason = "used by naradio only")
+    )]
+    pub(crate) fn outputs(&self) -> candle_core::Result<usize> {
+        self.weight_t.dim(1)
+    }
+
     /// Over the last dimension of `x`, whatever its leading dimensions (flattened to one matrix
     /// product, which is what candle's CPU matmul is fastest at).
     pub(crate) fn forward(&self, x: &Tensor) -> candle_core::Result<Tensor> {

@@ -1,10 +1,12 @@
-//! The patch-embedding pipeline end to end: `configs/synthetic-dinov3.toml` (synthetic scene, the
-//! `dinov3` encoder on the tiny random-weight DINOv3 + dino.txt committed in
-//! `vlem-backends/goldens/dinov3/`, a point-cloud map) built through the registry as the `vlem`
-//! binary builds it. Checks that every pixel with depth becomes a map point (a patch encoder
-//! embeds the whole frame), that the map has the patch embedding's dimension and that text
-//! queries score every point with a finite normalised cosine.
-#![cfg(feature = "dinov3")]
+//! The patch-embedding pipeline end to end, for each patch encoder: `configs/synthetic-dinov3.toml`
+//! (the `dinov3` encoder on the tiny random-weight DINOv3 + dino.txt committed in
+//! `vlem-backends/goldens/dinov3/`) and `configs/synthetic-naradio.toml` (the `naradio` encoder on
+//! the tiny RADIO + SigLIP text tower in `vlem-backends/goldens/naradio/`), each on the synthetic
+//! scene with a point-cloud map, built through the registry as the `vlem` binary builds it.
+//! Checks that every pixel with depth becomes a map point (a patch encoder embeds the whole
+//! frame), that the map has the patch embedding's dimension and that text queries score every
+//! point with a finite normalised cosine.
+#![cfg(any(feature = "dinov3", feature = "naradio"))]
 #![allow(
     clippy::unwrap_used,
     clippy::expect_used,
@@ -27,9 +29,9 @@ fn configs() -> PathBuf {
     PathBuf::from(env!("CARGO_MANIFEST_DIR")).join("configs")
 }
 
-/// The shipped config, shrunk to `frames` frames of 160x120 (the short side along).
-fn config(frames: usize) -> (Config, BuildContext) {
-    let mut config = Config::from_file(&configs().join("synthetic-dinov3.toml")).unwrap();
+/// The shipped config `name`, shrunk to `frames` frames of 160x120 (the short side along).
+fn config(name: &str, frames: usize) -> (Config, BuildContext) {
+    let mut config = Config::from_file(&configs().join(name)).unwrap();
     let synthetic = config.dataset.synthetic.as_mut().unwrap();
     synthetic.frames = frames;
     synthetic.width = 160;
@@ -43,9 +45,21 @@ fn config(frames: usize) -> (Config, BuildContext) {
     (config, ctx)
 }
 
+#[cfg(feature = "dinov3")]
 #[test]
-fn every_pixel_with_depth_becomes_a_point_and_queries_score_them() {
-    let (config, ctx) = config(2);
+fn dinov3_maps_every_pixel_with_depth_and_queries_score_them() {
+    check("synthetic-dinov3.toml", "dinov3", 32);
+}
+
+#[cfg(feature = "naradio")]
+#[test]
+fn naradio_maps_every_pixel_with_depth_and_queries_score_them() {
+    check("synthetic-naradio.toml", "naradio", 40);
+}
+
+/// Runs config `name` (encoder `encoder` of dimension `dim`) and checks the map and the queries.
+fn check(name: &str, encoder_name: &str, dim: usize) {
+    let (config, ctx) = config(name, 2);
     let mut source = vlem_datasets::open(&config.dataset, &ctx.config_dir).unwrap();
     let frame = source.frame(0).unwrap();
     let (w, h) = (frame.colour.width(), frame.colour.height());
@@ -57,7 +71,7 @@ fn every_pixel_with_depth_becomes_a_point_and_queries_score_them() {
 
     let mut pipeline = Pipeline::from_config(&config, &ctx).unwrap();
     let encoder = pipeline.encoder().unwrap();
-    assert_eq!((encoder.name(), encoder.dim()), ("dinov3", 32));
+    assert_eq!((encoder.name(), encoder.dim()), (encoder_name, dim));
     assert!(!encoder.needs_regions());
 
     // One frame: one point per pixel with depth.
@@ -71,12 +85,13 @@ fn every_pixel_with_depth_becomes_a_point_and_queries_score_them() {
     assert_eq!(report.frames_processed, 2);
     assert!(report.stage_ms.contains_key("encode"));
     let map = pipeline.map().unwrap();
-    assert_eq!(map.dim(), 32);
+    assert_eq!(map.dim(), dim);
     let encoder = pipeline.encoder().unwrap();
     let mut scores = Vec::new();
     let mut previous: Option<Vec<f32>> = None;
     for text in &config.query.texts {
         let query = encoder.encode_text(text).unwrap();
+        assert_eq!(query.len(), dim);
         map.similarity(&query, &mut scores).unwrap();
         assert_eq!(scores.len(), map.len());
         assert!(

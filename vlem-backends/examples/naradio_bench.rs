@@ -1,0 +1,84 @@
+//! NARADIO speed: milliseconds per 640 x 480 frame through the RADIOv2.5 trunk with the NACLIP
+//! last block and the SigLIP adaptor, at full ViT-B/16 and ViT-L/16 size with random weights
+//! (speed does not depend on the values). The frame is fed as RayFronts feeds it: 640 x 480, a
+//! 40 x 30 patch grid. Threads: set `RAYON_NUM_THREADS`.
+//!
+//! ```text
+//! RAYON_NUM_THREADS=1 cargo run --release -p vlem-backends --features naradio --example naradio_bench -- [b|l|both] [iterations]
+//! ```
+
+use std::time::Instant;
+
+use candle_core::{Device, Tensor};
+use vlem_backends::naradio::{GaussianGrid, LastBlock, RadioConfig, RadioModel};
+
+fn config(embed_dim: usize, depth: usize, num_heads: usize) -> RadioConfig {
+    RadioConfig {
+        format: "vlem-naradio-1".into(),
+        patch_size: 16,
+        embed_dim,
+        depth,
+        num_heads,
+        mlp_hidden: 4 * embed_dim,
+        qkv_bias: true,
+        layer_scale: false,
+        layer_norm_eps: 1e-6,
+        final_norm: false,
+        pos_grid: [128, 128],
+        num_cls_tokens: 4,
+        num_registers: 4,
+        summary_idxs: vec![0, 1, 2],
+        adaptor: "siglip".into(),
+        adaptor_token_slot: 1,
+        adaptor_mlp: "v2".into(),
+        adaptor_layer_norm_eps: 1e-5,
+        feature_normalizer: false,
+        input_mean: [0.481_454_66, 0.457_827_5, 0.408_210_73],
+        input_std: [0.268_629_54, 0.261_302_6, 0.275_777_1],
+    }
+}
+
+fn main() -> anyhow::Result<()> {
+    let args: Vec<String> = std::env::args().collect();
+    let which = args.get(1).map_or("both", String::as_str);
+    let iterations: usize = args.get(2).map_or(Ok(3), |s| s.parse())?;
+    let threads = std::env::var("RAYON_NUM_THREADS").unwrap_or_else(|_| "all".into());
+    let sizes: Vec<(&str, RadioConfig)> = [
+        ("B/16", config(768, 12, 12)),
+        ("L/16", config(1024, 24, 16)),
+    ]
+    .into_iter()
+    .filter(|(name, _)| match which {
+        "b" => *name == "B/16",
+        "l" => *name == "L/16",
+        _ => true,
+    })
+    .collect();
+    for (name, cfg) in sizes {
+        // The SigLIP adaptor of RADIOv2.5: into SO400M's 1152-d space.
+        let model = RadioModel::random(cfg, 1536, 1152)?;
+        let x = Tensor::rand(0f32, 1f32, (1, 3, 480, 640), &Device::Cpu)?;
+        let last = LastBlock::Naclip {
+            std: 7.0,
+            grid: GaussianGrid::Rayfronts,
+            reduced: false,
+        };
+        let run = || -> anyhow::Result<()> {
+            let x = model.condition(&x)?;
+            let out = model.forward(&x, last)?;
+            let lang = model.adapt(&out.features)?;
+            anyhow::ensure!(lang.dims() == [1, 1200, 1152], "shape {:?}", lang.dims());
+            Ok(())
+        };
+        run()?; // warm-up: caches the position embeddings and the prior
+        let start = Instant::now();
+        for _ in 0..iterations {
+            run()?;
+        }
+        let ms = start.elapsed().as_secs_f64() * 1000.0 / iterations as f64;
+        println!(
+            "NARADIO {name} 640x480 (40x30 patches), threads {threads}: {ms:.0} ms/frame ({iterations} runs)"
+        );
+    }
+    Ok(())
+}
