@@ -43,9 +43,6 @@ use crate::minilm::SentenceEncoder;
 /// The name this encoder is registered under (`[encoder] kind = "label-text"`).
 pub const NAME: &str = "label-text";
 
-/// The placeholder that a template's text replaces.
-pub const PLACEHOLDER: &str = "{}";
-
 /// Texts embedded in one model call at most (class names times templates).
 const BATCH: usize = 32;
 
@@ -67,7 +64,7 @@ impl Default for LabelTextConfig {
     fn default() -> Self {
         Self {
             model_dir: None,
-            templates: vec![PLACEHOLDER.to_owned()],
+            templates: crate::prompts::default_templates(),
         }
     }
 }
@@ -87,17 +84,7 @@ impl LabelTextEncoder {
     /// # Errors
     /// [`BackendError::InvalidParams`] when `templates` is empty or a template lacks `{}`.
     pub fn new(sentence: SentenceEncoder, templates: Vec<String>) -> Result<Self, BackendError> {
-        if templates.is_empty() {
-            return Err(BackendError::InvalidParams(
-                "templates must hold at least one template, e.g. [\"{}\"]".to_owned(),
-            ));
-        }
-        if let Some(bad) = templates.iter().find(|t| !t.contains(PLACEHOLDER)) {
-            return Err(BackendError::InvalidParams(format!(
-                "every template needs a {{}} where the text goes, e.g. \"a photo of a {{}}\"; \
-                 {bad:?} has none"
-            )));
-        }
+        crate::prompts::check_templates(&templates, "[encoder]")?;
         Ok(Self {
             sentence,
             templates,
@@ -131,10 +118,7 @@ impl LabelTextEncoder {
     /// # Errors
     /// [`BackendError::Inference`].
     pub fn embed_texts(&self, texts: &[&str]) -> Result<Vec<Vec<f32>>, BackendError> {
-        let prompts: Vec<String> = texts
-            .iter()
-            .flat_map(|text| self.templates.iter().map(|t| t.replace(PLACEHOLDER, text)))
-            .collect();
+        let prompts = crate::prompts::fill(&self.templates, texts);
         let mut embeddings = Vec::with_capacity(prompts.len());
         for chunk in prompts.chunks(BATCH) {
             let chunk: Vec<&str> = chunk.iter().map(String::as_str).collect();
@@ -143,10 +127,17 @@ impl LabelTextEncoder {
         if self.templates.len() == 1 {
             return Ok(embeddings);
         }
-        Ok(embeddings
+        embeddings
             .chunks(self.templates.len())
-            .map(mean_normalised)
-            .collect())
+            .zip(texts)
+            .map(|(group, text)| {
+                let dim = group.first().map_or(0, Vec::len);
+                crate::prompts::mean_of_unit(group, dim).ok_or_else(|| BackendError::Inference {
+                    what: format!("embedding {text:?}"),
+                    source: "the prompts' embeddings average to zero".into(),
+                })
+            })
+            .collect()
     }
 
     /// The cached embeddings of the class names `names`, computing those not seen before.
@@ -221,21 +212,6 @@ impl LabelTextEncoder {
 }
 
 /// The mean of unit vectors, L2-normalised (left as is if it is zero).
-fn mean_normalised(vectors: &[Vec<f32>]) -> Vec<f32> {
-    let dim = vectors.first().map_or(0, Vec::len);
-    let mut mean = vec![0.0f32; dim];
-    for v in vectors {
-        for (m, x) in mean.iter_mut().zip(v) {
-            *m += x;
-        }
-    }
-    let norm = mean.iter().map(|x| x * x).sum::<f32>().sqrt();
-    if norm > 0.0 {
-        mean.iter_mut().for_each(|x| *x /= norm);
-    }
-    mean
-}
-
 impl Encoder for LabelTextEncoder {
     fn name(&self) -> &'static str {
         NAME

@@ -57,9 +57,11 @@ pub mod minilm;
 pub mod clip;
 
 // Always compiled: the shared preprocessing of the segment encoders (clip, onnx) and of the patch
-// encoders (onnx, dinov3, naradio), and the model file lookups of every backend that loads files.
+// encoders (onnx, dinov3, naradio), the prompt templates of every text side, and the model file
+// lookups of every backend that loads files.
 pub mod model_files;
 pub mod patch_input;
+pub mod prompts;
 pub mod segment_crops;
 
 #[cfg(feature = "graph")]

@@ -47,9 +47,6 @@ pub use model::{CLIP_CONVERT_HINT, CLIP_INSTALL_HINT, ClipConfig, ClipModel};
 /// The name this encoder is registered under (`[encoder] kind = "clip"`).
 pub const NAME: &str = "clip";
 
-/// The placeholder that a template's text replaces.
-pub const PLACEHOLDER: &str = "{}";
-
 /// Environment variable naming the model folder when the config does not.
 pub const MODEL_DIR_ENV: &str = "VLEM_CLIP_DIR";
 
@@ -80,7 +77,7 @@ impl Default for ClipEncoderConfig {
             model_dir: None,
             background: Background::None,
             seed: 0,
-            templates: vec![PLACEHOLDER.to_owned()],
+            templates: crate::prompts::default_templates(),
             batch_size: DEFAULT_BATCH_SIZE,
         }
     }
@@ -174,17 +171,7 @@ impl ClipEncoder {
         templates: Vec<String>,
         batch_size: usize,
     ) -> Result<Self, BackendError> {
-        if templates.is_empty() {
-            return Err(BackendError::InvalidParams(
-                "templates must hold at least one template, e.g. [\"a photo of a {}.\"]".to_owned(),
-            ));
-        }
-        if let Some(bad) = templates.iter().find(|t| !t.contains(PLACEHOLDER)) {
-            return Err(BackendError::InvalidParams(format!(
-                "every template needs a {{}} where the query goes, e.g. \"a photo of a {{}}.\"; \
-                 {bad:?} has none"
-            )));
-        }
+        crate::prompts::check_templates(&templates, "[encoder]")?;
         if batch_size == 0 {
             return Err(BackendError::InvalidParams(
                 "batch_size must be at least 1".to_owned(),
@@ -288,36 +275,23 @@ impl ClipEncoder {
     /// [`BackendError::Inference`] when tokenising or the model fails, or an embedding cannot
     /// be normalised.
     pub fn embed_texts(&self, texts: &[&str]) -> Result<Vec<Vec<f32>>, BackendError> {
-        let prompts: Vec<String> = texts
-            .iter()
-            .flat_map(|text| self.templates.iter().map(|t| t.replace(PLACEHOLDER, text)))
-            .collect();
+        let prompts = crate::prompts::fill(&self.templates, texts);
         let dim = self.model.projection_dim();
-        let mut out = Vec::with_capacity(texts.len());
         let mut embeddings = Vec::with_capacity(prompts.len());
         for chunk in prompts.chunks(self.batch_size.max(self.templates.len())) {
             let chunk: Vec<&str> = chunk.iter().map(String::as_str).collect();
             embeddings.extend(self.model.text_features(&chunk)?);
         }
-        let bad = |text: &str| BackendError::Inference {
-            what: format!("embedding {text:?}"),
-            source: "the text embedding is zero or not finite".into(),
-        };
-        for (text, group) in texts.iter().zip(embeddings.chunks(self.templates.len())) {
-            let mut mean = vec![0.0f32; dim];
-            for e in group {
-                let mut e = e.clone();
-                if !vlem_core::embeddings::normalise(&mut e) {
-                    return Err(bad(text));
-                }
-                mean.iter_mut().zip(&e).for_each(|(m, x)| *m += x);
-            }
-            if !vlem_core::embeddings::normalise(&mut mean) {
-                return Err(bad(text));
-            }
-            out.push(mean);
-        }
-        Ok(out)
+        texts
+            .iter()
+            .zip(embeddings.chunks(self.templates.len()))
+            .map(|(text, group)| {
+                crate::prompts::mean_of_unit(group, dim).ok_or_else(|| BackendError::Inference {
+                    what: format!("embedding {text:?}"),
+                    source: "the text embedding is zero or not finite".into(),
+                })
+            })
+            .collect()
     }
 
     /// The image side with this crate's error.

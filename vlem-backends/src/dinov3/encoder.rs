@@ -60,9 +60,6 @@ pub const DINOTXT_FILE: &str = "dinov3_vitl16_dinotxt_vision_head_and_text_encod
 /// The default input's shorter side: 28 patches (a 640×480 frame becomes 592×448, 37×28).
 pub const DEFAULT_SHORT_SIDE: u32 = 448;
 
-/// The placeholder that a template's text replaces.
-pub const PLACEHOLDER: &str = "{}";
-
 /// How to get the dino.txt files, for the messages that say they are missing.
 pub const DINOTXT_INSTALL_HINT: &str = "dino.txt is not on Hugging Face: request the DINOv3 \
      downloads from Meta (https://ai.meta.com/resources/models-and-libraries/dinov3-downloads/), \
@@ -105,7 +102,7 @@ impl Default for Dinov3EncoderConfig {
             dinotxt_weights: None,
             bpe_vocab: None,
             short_side: DEFAULT_SHORT_SIDE,
-            templates: vec![PLACEHOLDER.to_owned()],
+            templates: crate::prompts::default_templates(),
             text_heads: None,
         }
     }
@@ -248,16 +245,7 @@ impl Dinov3Encoder {
                 DEFAULT_SHORT_SIDE
             )));
         }
-        if templates.is_empty() {
-            return Err(BackendError::InvalidParams(
-                "templates must hold at least one template, e.g. [\"a photo of a {}.\"]".to_owned(),
-            ));
-        }
-        if let Some(bad) = templates.iter().find(|t| !t.contains(PLACEHOLDER)) {
-            return Err(BackendError::InvalidParams(format!(
-                "every template needs a {{}} where the query goes; {bad:?} has none"
-            )));
-        }
+        crate::prompts::check_templates(&templates, "[encoder]")?;
         if backbone.config().hidden_size != heads.patch_dim() {
             return Err(BackendError::InvalidParams(format!(
                 "the backbone in {} is {}-d but the dino.txt head takes {}-d tokens: dino.txt \
@@ -371,21 +359,14 @@ impl Dinov3Encoder {
             what: format!("dino.txt embedding of {text:?}"),
             source: "the text embedding is zero or not finite".into(),
         };
-        let mut mean = vec![0.0f32; dim];
-        for template in &self.templates {
-            let prompt = template.replace(PLACEHOLDER, text);
-            let ids = self.tokenizer.tokenize(&prompt, context);
-            let full = self.heads.text(&ids)?;
-            let mut half = full.get(dim..).map(<[f32]>::to_vec).ok_or_else(bad)?;
-            if !vlem_core::embeddings::normalise(&mut half) {
-                return Err(bad());
-            }
-            mean.iter_mut().zip(&half).for_each(|(m, x)| *m += x);
-        }
-        if !vlem_core::embeddings::normalise(&mut mean) {
-            return Err(bad());
-        }
-        Ok(mean)
+        let halves = crate::prompts::fill(&self.templates, &[text])
+            .iter()
+            .map(|prompt| {
+                let full = self.heads.text(&self.tokenizer.tokenize(prompt, context))?;
+                full.get(dim..).map(<[f32]>::to_vec).ok_or_else(bad)
+            })
+            .collect::<Result<Vec<_>, _>>()?;
+        crate::prompts::mean_of_unit(&halves, dim).ok_or_else(bad)
     }
 }
 

@@ -53,9 +53,6 @@ pub const NAME: &str = "naradio";
 /// Environment variable naming the model folder when the config does not.
 pub const MODEL_DIR_ENV: &str = "VLEM_NARADIO_DIR";
 
-/// The placeholder that a template's text replaces.
-pub const PLACEHOLDER: &str = "{}";
-
 /// RayFronts' prompt templates (`openai_imagenet_template`, OpenAI CLIP's 80 ImageNet prompts).
 pub const IMAGENET_TEMPLATES: [&str; 80] = [
     "a bad photo of a {}.",
@@ -223,16 +220,7 @@ impl NaradioEncoder {
         ctx: &BuildContext,
     ) -> Result<Self, BackendError> {
         let bad = |m: String| Err(BackendError::InvalidParams(m));
-        if config.templates.is_empty() {
-            return bad(
-                "templates must hold at least one template, e.g. [\"a photo of a {}.\"]".into(),
-            );
-        }
-        if let Some(t) = config.templates.iter().find(|t| !t.contains(PLACEHOLDER)) {
-            return bad(format!(
-                "every template needs a {{}} where the query goes; {t:?} has none"
-            ));
-        }
+        crate::prompts::check_templates(&config.templates, "[encoder]")?;
         if !(config.gauss_std.is_finite() && config.gauss_std > 0.0) {
             return bad(format!(
                 "gauss_std must be positive, got {}",
@@ -318,11 +306,7 @@ impl NaradioEncoder {
         texts
             .iter()
             .map(|t| {
-                let prompts: Vec<String> = self
-                    .templates
-                    .iter()
-                    .map(|p| p.replace(PLACEHOLDER, t))
-                    .collect();
+                let prompts = crate::prompts::fill(&self.templates, &[t]);
                 let refs: Vec<&str> = prompts.iter().map(String::as_str).collect();
                 let rows = self.text.embed(&refs)?;
                 let mut mean = vec![0.0f32; self.dim];

@@ -76,9 +76,6 @@ use runtime::{Input, Model, Output};
 /// The name this encoder is registered under (`[encoder] kind = "onnx"`).
 pub const NAME: &str = "onnx";
 
-/// The placeholder that a template's text replaces.
-pub const PLACEHOLDER: &str = "{}";
-
 /// Crops per image-model call in the `global` kind, unless `batch` says otherwise.
 pub const DEFAULT_BATCH: usize = 16;
 
@@ -219,7 +216,7 @@ fn default_max_length() -> usize {
 }
 
 fn default_templates() -> Vec<String> {
-    vec![PLACEHOLDER.to_owned()]
+    crate::prompts::default_templates()
 }
 
 /// The encoder. See the [module documentation](self).
@@ -420,19 +417,18 @@ impl OnnxEncoder {
             invalid("this onnx encoder has no text model ([encoder.text])".to_owned())
         })?;
         let templates = &text.templates;
-        let prompts: Vec<String> = texts
-            .iter()
-            .flat_map(|t| templates.iter().map(move |p| p.replace(PLACEHOLDER, t)))
-            .collect();
+        let prompts = crate::prompts::fill(templates, texts);
         let prompts: Vec<&str> = prompts.iter().map(String::as_str).collect();
         let embeddings = text.embed(&prompts, self.dim)?;
         embeddings
             .chunks(templates.len().max(1))
             .zip(texts)
             .map(|(group, t)| {
-                mean_of_unit(group, self.dim).ok_or_else(|| BackendError::Inference {
-                    what: format!("embedding {t:?}"),
-                    source: "the model gave a zero or non-finite embedding".into(),
+                crate::prompts::mean_of_unit(group, self.dim).ok_or_else(|| {
+                    BackendError::Inference {
+                        what: format!("embedding {t:?}"),
+                        source: "the model gave a zero or non-finite embedding".into(),
+                    }
                 })
             })
             .collect()
@@ -526,20 +522,6 @@ fn check_shape(out: &Output, shape: &[usize], what: &str) -> Result<(), BackendE
             format!("has shape {:?}, expected {shape:?}", out.shape),
         ))
     }
-}
-
-/// The L2-normalised mean of the L2-normalised rows; `None` when a row or the mean is zero or
-/// not finite.
-fn mean_of_unit(rows: &[Vec<f32>], dim: usize) -> Option<Vec<f32>> {
-    let mut mean = vec![0.0f32; dim];
-    for row in rows {
-        let mut row = row.clone();
-        if !vlem_core::embeddings::normalise(&mut row) {
-            return None;
-        }
-        mean.iter_mut().zip(&row).for_each(|(m, x)| *m += x);
-    }
-    vlem_core::embeddings::normalise(&mut mean).then_some(mean)
 }
 
 /// Checks the image parameters that need no model.
@@ -833,18 +815,7 @@ fn check_text_params(c: &TextConfig) -> Result<(), BackendError> {
             "[encoder.text] max_length must be at least 2".to_owned(),
         ));
     }
-    if c.templates.is_empty() {
-        return Err(invalid(
-            "[encoder.text] templates must hold at least one template, e.g. [\"{}\"]".to_owned(),
-        ));
-    }
-    if let Some(bad) = c.templates.iter().find(|t| !t.contains(PLACEHOLDER)) {
-        return Err(invalid(format!(
-            "every template needs a {{}} where the text goes, e.g. \"a photo of a {{}}\"; \
-             {bad:?} has none"
-        )));
-    }
-    Ok(())
+    crate::prompts::check_templates(&c.templates, "[encoder.text]")
 }
 
 impl TextTower {
