@@ -23,6 +23,7 @@ use candle_transformers::models::bert::{BertModel, Config};
 use tokenizers::{PaddingParams, PaddingStrategy, Tokenizer, TruncationParams};
 
 use crate::error::{BackendError, MINILM_INSTALL_HINT};
+use crate::model_files::read_text;
 
 /// The model's name in messages.
 pub const MODEL: &str = "all-MiniLM-L6-v2";
@@ -305,13 +306,6 @@ fn inference(what: &str, reason: impl Into<String>) -> BackendError {
         what: what.to_owned(),
         source: reason.into().into(),
     }
-}
-
-fn read_text(path: &Path) -> Result<String, BackendError> {
-    std::fs::read_to_string(path).map_err(|e| BackendError::InvalidModelFile {
-        path: path.to_path_buf(),
-        reason: format!("cannot read it: {e}"),
-    })
 }
 
 /// The JSON in `path`, or `None` when there is no such file.

@@ -44,6 +44,17 @@ pub fn require_files(
     }
 }
 
+/// The text of the model file `path`.
+///
+/// # Errors
+/// [`BackendError::InvalidModelFile`] saying why it cannot be read.
+pub fn read_text(path: &Path) -> Result<String, BackendError> {
+    std::fs::read_to_string(path).map_err(|e| BackendError::InvalidModelFile {
+        path: path.to_path_buf(),
+        reason: format!("cannot read it: {e}"),
+    })
+}
+
 /// The folder of the installed Python package `package`, asked of `python3` with
 /// `importlib.util.find_spec` (which locates a top-level package without importing it).
 ///

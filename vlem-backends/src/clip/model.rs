@@ -731,11 +731,7 @@ impl ClipModel {
     pub fn load(dir: &Path) -> Result<Self, BackendError> {
         let dir = check_model_dir(dir, "the caller".to_owned())?;
         let config_path = dir.join("config.json");
-        let text =
-            std::fs::read_to_string(&config_path).map_err(|e| BackendError::InvalidModelFile {
-                path: config_path.clone(),
-                reason: format!("cannot read it: {e}"),
-            })?;
+        let text = crate::model_files::read_text(&config_path)?;
         let config =
             ClipConfig::from_json(&text).map_err(|reason| BackendError::InvalidModelFile {
                 path: config_path.clone(),

@@ -297,8 +297,7 @@ impl RadioModel {
     pub fn load(dir: &Path) -> Result<Self, BackendError> {
         let dir = check_model_dir(dir, "the caller".to_owned())?;
         let config_path = dir.join("config.json");
-        let text = std::fs::read_to_string(&config_path)
-            .map_err(|e| invalid(&config_path, format!("cannot read it: {e}")))?;
+        let text = crate::model_files::read_text(&config_path)?;
         let config: RadioConfig =
             serde_json::from_str(&text).map_err(|e| invalid(&config_path, e.to_string()))?;
         if config.format != "vlem-naradio-1" {

@@ -73,8 +73,7 @@ impl SiglipText {
     /// [`BackendError::InvalidModelFile`] naming the file that cannot be read or does not fit.
     pub fn load(dir: &Path) -> Result<Self, BackendError> {
         let config_path = dir.join("config.json");
-        let text = std::fs::read_to_string(&config_path)
-            .map_err(|e| invalid(&config_path, format!("cannot read it: {e}")))?;
+        let text = crate::model_files::read_text(&config_path)?;
         let config: siglip::TextConfig =
             serde_json::from_str(&text).map_err(|e| invalid(&config_path, e.to_string()))?;
         let extras: TextExtras =
