@@ -202,6 +202,15 @@ fn missing_files_are_named_with_the_way_to_get_them() {
     );
 }
 
+/// A JSON array of token ids.
+fn token_ids(v: &Value) -> Vec<u32> {
+    v.as_array()
+        .unwrap()
+        .iter()
+        .map(|x| u32::try_from(x.as_u64().unwrap()).unwrap())
+        .collect()
+}
+
 fn floats(v: &Value) -> Vec<f32> {
     v.as_array()
         .unwrap()
@@ -262,23 +271,13 @@ fn dinotxt_text_tower_matches_meta_goldens() {
     let mut embeddings = Vec::new();
     for case in texts {
         let expected = floats(&case["text_embedding"]);
-        let ids: Vec<u32> = case["ids"]
-            .as_array()
-            .unwrap()
-            .iter()
-            .map(|v| v.as_u64().unwrap() as u32)
-            .collect();
+        let ids = token_ids(&case["ids"]);
         let got = heads.text(&ids).unwrap();
         assert_eq!(got.len(), heads.embed_dim());
         let diff = max_abs_diff(&got, &expected);
         assert!(diff <= TOLERANCE, "{ids:?}: max |diff| {diff}");
         // The zero-padded sequence the reference runs gives the same embedding.
-        let padded: Vec<u32> = case["padded_ids"]
-            .as_array()
-            .unwrap()
-            .iter()
-            .map(|v| v.as_u64().unwrap() as u32)
-            .collect();
+        let padded = token_ids(&case["padded_ids"]);
         assert_eq!(heads.text(&padded).unwrap(), got);
         embeddings.push(got);
     }
@@ -317,12 +316,7 @@ fn tokenizer_matches_the_reference() {
     assert_eq!(cases.len(), 20);
     for case in cases {
         let text = case["text"].as_str().unwrap();
-        let expected: Vec<u32> = case["ids"]
-            .as_array()
-            .unwrap()
-            .iter()
-            .map(|v| v.as_u64().unwrap() as u32)
-            .collect();
+        let expected = token_ids(&case["ids"]);
         assert_eq!(bpe.tokenize(text, context), expected, "{text:?}");
     }
 }
@@ -353,12 +347,7 @@ fn encoder_text_matches_meta_goldens() {
     let encoder = tiny_encoder();
     for case in encoder_goldens()["prompts"].as_array().unwrap() {
         let text = case["text"].as_str().unwrap();
-        let ids: Vec<u32> = case["ids"]
-            .as_array()
-            .unwrap()
-            .iter()
-            .map(|v| v.as_u64().unwrap() as u32)
-            .collect();
+        let ids = token_ids(&case["ids"]);
         assert_eq!(encoder.tokenizer().tokenize(text, 16), ids, "{text:?}");
         let got = encoder.encode_text(text).unwrap();
         let diff = max_abs_diff(&got, &floats(&case["embedding"]));
