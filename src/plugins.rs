@@ -14,6 +14,7 @@ use vlem_backends as _;
 use vlem_maps as _;
 #[cfg(feature = "colour-names")]
 use vlem_plugin_colour_names as _;
+use vlem_query as _;
 use vlem_trackers as _;
 
 vlem_core::feature_hint!(Encoder, "colour-names", "colour-names");

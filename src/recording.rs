@@ -13,9 +13,7 @@ use std::sync::Mutex;
 use anyhow::{Context, Result};
 use rerun::{ChannelDatatype, RecordingStream, RecordingStreamBuilder, components::ImageFormat};
 use vlem_core::{ColouredMesh, EmbeddingMap, Frame, PointSet, Pose, Region, RunObserver};
-use vlem_maps::grasp::Grasp;
-
-use crate::output;
+use vlem_query::grasp::Grasp;
 
 /// Where a recording goes.
 pub enum RecordingTarget<'a> {
@@ -135,9 +133,9 @@ impl Recorder {
             *count - 1
         };
         self.stream.set_time_sequence("query", step);
-        let root = format!("world/queries/{}", crate::slug(text));
+        let root = format!("world/queries/{}", vlem_query::answer::slug(text));
         let colours = scores.iter().map(|&s| {
-            let [r, g, b] = output::jet(s);
+            let [r, g, b] = vlem_query::heatmap::jet(s);
             rerun::Color::from_rgb(r, g, b)
         });
         self.stream.log(
@@ -220,7 +218,7 @@ fn map_points(points: &ColouredMesh) -> rerun::Points3D {
 
 /// The gripper drawn as line strips: closing axis, fingers, palm and stem.
 fn gripper_strips(grasp: &Grasp) -> Vec<Vec<[f32; 3]>> {
-    output::gripper_segments(grasp)
+    vlem_query::heatmap::gripper_segments(grasp)
         .into_iter()
         .map(|(from, to, _)| vec![from, to])
         .collect()

@@ -6,7 +6,7 @@ use std::path::Path;
 
 use anyhow::{Result, bail};
 use vlem_core::{ColouredMesh, PointSet, RunObserver};
-use vlem_maps::grasp::Grasp;
+use vlem_query::grasp::Grasp;
 
 /// Where a recording would go.
 pub enum RecordingTarget<'a> {

@@ -65,9 +65,13 @@ impl Config {
     /// Reads and parses a config file.
     ///
     /// # Errors
-    /// [`CoreError::Config`] with the parser's message, which names the line and key.
+    /// [`CoreError::ConfigRead`] for an unreadable file, [`CoreError::Config`] with the parser's
+    /// message, which names the line and key.
     pub fn from_file(path: &Path) -> Result<Self> {
-        let text = std::fs::read_to_string(path).map_err(|e| CoreError::io(path, e))?;
+        let text = std::fs::read_to_string(path).map_err(|source| CoreError::ConfigRead {
+            path: path.to_path_buf(),
+            source,
+        })?;
         Self::from_toml(&text).map_err(|message| CoreError::Config {
             path: path.to_path_buf(),
             message,
@@ -86,6 +90,13 @@ impl Config {
     pub fn to_toml(&self) -> String {
         toml::to_string_pretty(self).unwrap_or_default()
     }
+}
+
+/// The folder of a config file, against which its relative paths are resolved.
+pub fn config_folder(path: &Path) -> &Path {
+    path.parent()
+        .filter(|p| !p.as_os_str().is_empty())
+        .unwrap_or(Path::new("."))
 }
 
 /// Which implementation a stage uses, and its parameters.
@@ -408,7 +419,8 @@ mod tests {
     fn config_file_errors_name_the_file() {
         let err = Config::from_file(Path::new("/nonexistent/vlem.toml")).unwrap_err();
         assert!(
-            err.to_string().starts_with("/nonexistent/vlem.toml: "),
+            err.to_string()
+                .starts_with("cannot read config /nonexistent/vlem.toml: "),
             "{err}"
         );
     }

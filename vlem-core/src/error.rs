@@ -123,7 +123,15 @@ pub enum CoreError {
         /// What the parser said, naming the offending key.
         message: String,
     },
-    /// A configuration file that cannot be read or parsed.
+    /// A configuration file that cannot be read.
+    #[error("cannot read config {}: {source}", path.display())]
+    ConfigRead {
+        /// The file.
+        path: PathBuf,
+        /// Why.
+        source: std::io::Error,
+    },
+    /// A configuration file that cannot be parsed.
     #[error("config {}: {message}", path.display())]
     Config {
         /// The file.

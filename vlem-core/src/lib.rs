@@ -6,6 +6,7 @@
 pub mod config;
 pub mod embeddings;
 pub mod error;
+pub mod live;
 pub mod mapfile;
 pub mod pipeline;
 pub mod query;
@@ -17,7 +18,7 @@ pub use config::{Config, StageConfig};
 pub use embeddings::{EmbeddingLayout, NO_SEGMENT, PixelEmbeddings};
 pub use error::{CoreError, Result};
 pub use mapfile::{MapMetadata, MapSnapshot, read_map_file, write_map_file};
-pub use registry::{BuildContext, Registry, StageKind, parse_params};
+pub use registry::{BuildContext, Registry, StageKind, load_config, parse_params};
 pub use traits::embedding_map::{EmbeddingMap, IntegrationStats, Observation};
 pub use traits::encoder::Encoder;
 pub use traits::frame_source::FrameSource;

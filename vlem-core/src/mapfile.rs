@@ -192,6 +192,32 @@ fn create_temp_file(dir: &Path, file_name: &str) -> Result<(PathBuf, File)> {
 
 fn write_to(tmp: &Path, file: File, snapshot: &MapSnapshot) -> Result<u64> {
     let io = |e| CoreError::io(tmp, e);
+    let inner = encode_into(BufWriter::with_capacity(1 << 20, file), snapshot, tmp)?;
+    let file = inner
+        .into_inner()
+        .map_err(|e| CoreError::io(tmp, e.into_error()))?;
+    file.sync_all().map_err(io)?;
+    Ok(file.metadata().map_err(io)?.len())
+}
+
+/// The bytes of the map file [`write_map_file`] would write for `snapshot`, e.g. to send it over
+/// a network.
+///
+/// # Errors
+/// An inconsistent snapshot, or a header that cannot be encoded.
+pub fn map_file_bytes(snapshot: &MapSnapshot) -> Result<Vec<u8>> {
+    snapshot.validate()?;
+    let capacity = 64 + snapshot.len() * (15 + 4 * snapshot.dim);
+    encode_into(
+        Vec::with_capacity(capacity),
+        snapshot,
+        Path::new("(in memory)"),
+    )
+}
+
+/// Writes the whole file format into `inner` (errors name `path`) and returns it.
+fn encode_into<W: Write>(inner: W, snapshot: &MapSnapshot, path: &Path) -> Result<W> {
+    let io = |e| CoreError::io(path, e);
     let header = Header {
         map_kind: snapshot.map_kind.clone(),
         points: snapshot.len() as u64,
@@ -200,15 +226,15 @@ fn write_to(tmp: &Path, file: File, snapshot: &MapSnapshot) -> Result<u64> {
         metadata: snapshot.metadata.clone(),
     };
     let header = serde_json::to_vec(&header).map_err(|e| CoreError::MapFile {
-        path: tmp.to_path_buf(),
+        path: path.to_path_buf(),
         reason: format!("cannot encode header: {e}"),
     })?;
     let header_len = u32::try_from(header.len()).map_err(|_| CoreError::MapFile {
-        path: tmp.to_path_buf(),
+        path: path.to_path_buf(),
         reason: "header larger than 4 GiB".into(),
     })?;
     let mut w = Checksummed {
-        inner: BufWriter::with_capacity(1 << 20, file),
+        inner,
         crc: crc32fast::Hasher::new(),
     };
     w.write_all(MAGIC).map_err(io)?;
@@ -239,11 +265,7 @@ fn write_to(tmp: &Path, file: File, snapshot: &MapSnapshot) -> Result<u64> {
     let crc = w.crc.clone().finalize();
     let mut inner = w.inner;
     inner.write_all(&crc.to_le_bytes()).map_err(io)?;
-    let file = inner
-        .into_inner()
-        .map_err(|e| CoreError::io(tmp, e.into_error()))?;
-    file.sync_all().map_err(io)?;
-    Ok(file.metadata().map_err(io)?.len())
+    Ok(inner)
 }
 
 /// Reads a map file written by [`write_map_file`].

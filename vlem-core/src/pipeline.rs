@@ -8,8 +8,12 @@
 //!   (the embedding stage is busy) is not embedded and is counted as skipped, as in the paper.
 //!
 //! Frames the tracker reports as lost are never integrated.
+//!
+//! The map lives in a [`LiveMap`]: other threads query, snapshot and save it through
+//! [`Pipeline::live`] while the run integrates, and see the run's counters and latest pose.
 
 use std::collections::BTreeMap;
+use std::sync::Arc;
 use std::sync::mpsc::{Receiver, SyncSender, TrySendError, sync_channel};
 use std::time::Instant;
 
@@ -17,6 +21,8 @@ use serde::Serialize;
 
 use crate::config::{Config, Mode, PipelineConfig};
 use crate::error::{CoreError, Result};
+use crate::live::{LiveMap, MapRead, PoseStamp, RunState};
+use crate::mapfile::MapMetadata;
 use crate::registry::{BuildContext, Registry};
 use crate::traits::embedding_map::{EmbeddingMap, IntegrationStats, Observation};
 use crate::traits::encoder::Encoder;
@@ -30,8 +36,8 @@ use crate::types::{Frame, Pose};
 pub struct Pipeline {
     tracker: Box<dyn Tracker>,
     proposer: Option<Box<dyn RegionProposer>>,
-    encoder: Option<Box<dyn Encoder>>,
-    map: Option<Box<dyn EmbeddingMap>>,
+    encoder: Option<Arc<dyn Encoder>>,
+    live: LiveMap,
     config: PipelineConfig,
 }
 
@@ -112,6 +118,127 @@ pub struct RunReport {
     pub trajectory: Vec<TrajectoryEntry>,
 }
 
+/// The frame counters of a run, as `stats.json` writes them.
+#[derive(Clone, Copy, Debug, PartialEq, Eq, Serialize)]
+pub struct FrameCounts {
+    /// Frames the source offered.
+    pub total: usize,
+    /// Frames tracked (lost ones included).
+    pub tracked: usize,
+    /// Frames integrated into the map.
+    pub processed: usize,
+    /// Frames skipped in real-time mode.
+    pub skipped: usize,
+    /// Frames where tracking was lost.
+    pub lost: usize,
+}
+
+/// A frame where tracking was lost, and why.
+#[derive(Clone, Debug, PartialEq, Serialize)]
+pub struct LostFrame {
+    /// Frame index.
+    pub index: usize,
+    /// The tracker's reason.
+    pub reason: String,
+}
+
+/// The map part of [`RunStats`].
+#[derive(Clone, Debug, PartialEq, Serialize)]
+pub struct MapStats {
+    /// Registered map name.
+    pub kind: String,
+    /// Map elements.
+    pub points: usize,
+    /// Embedding dimension.
+    pub dim: usize,
+    /// Bytes of map storage.
+    pub bytes: usize,
+}
+
+impl MapStats {
+    /// The size of `map`.
+    pub fn of(map: &dyn EmbeddingMap) -> Self {
+        Self {
+            kind: map.name().into(),
+            points: map.len(),
+            dim: map.dim(),
+            bytes: map.memory_bytes(),
+        }
+    }
+}
+
+/// What a run writes as `stats.json`: counters, lost frames, mean stage times, the map's size.
+#[derive(Clone, Debug, PartialEq, Serialize)]
+pub struct RunStats {
+    /// Frame counters.
+    pub frames: FrameCounts,
+    /// Every frame where tracking was lost.
+    pub lost_frames: Vec<LostFrame>,
+    /// Offline or real-time.
+    pub mode: Mode,
+    /// Mean milliseconds per stage.
+    pub mean_ms: BTreeMap<&'static str, f64>,
+    /// Wall time of the run in seconds.
+    pub wall_seconds: f64,
+    /// The map after the run, when there is one.
+    pub map: Option<MapStats>,
+    /// Peak resident memory of the process, where the platform reports it.
+    pub peak_resident_bytes: Option<u64>,
+}
+
+impl RunReport {
+    /// The run's statistics in `stats.json` form.
+    pub fn stats(
+        &self,
+        mode: Mode,
+        map: Option<&dyn EmbeddingMap>,
+        peak_resident_bytes: Option<u64>,
+    ) -> RunStats {
+        RunStats {
+            frames: FrameCounts {
+                total: self.frames_total,
+                tracked: self.frames_tracked,
+                processed: self.frames_processed,
+                skipped: self.frames_skipped,
+                lost: self.frames_lost,
+            },
+            lost_frames: self
+                .trajectory
+                .iter()
+                .filter_map(|e| {
+                    e.lost.as_ref().map(|reason| LostFrame {
+                        index: e.index,
+                        reason: reason.clone(),
+                    })
+                })
+                .collect(),
+            mode,
+            mean_ms: self.stage_ms.iter().map(|(k, t)| (*k, t.mean_ms)).collect(),
+            wall_seconds: self.wall_seconds,
+            map: map.map(MapStats::of),
+            peak_resident_bytes,
+        }
+    }
+
+    /// The estimated trajectory as `(timestamp, pose)` pairs, for a trajectory file.
+    pub fn poses(&self) -> Vec<(f64, Pose)> {
+        self.trajectory
+            .iter()
+            .map(|e| (e.timestamp, e.pose))
+            .collect()
+    }
+
+    /// The dataset's own poses of the tracked frames, when the dataset has one for each.
+    pub fn reference_poses(&self) -> Option<Vec<(f64, Pose)>> {
+        let poses: Option<Vec<_>> = self
+            .trajectory
+            .iter()
+            .map(|e| e.reference.map(|pose| (e.timestamp, pose)))
+            .collect();
+        poses.filter(|p| !p.is_empty())
+    }
+}
+
 struct Tracked {
     frame: Frame,
     pose: Pose,
@@ -164,7 +291,14 @@ impl Pipeline {
             .as_ref()
             .map(|stage| registry.build_map(stage, &map_ctx))
             .transpose()?;
-        Self::new(tracker, proposer, encoder, map, config.pipeline.clone())
+        let pipeline = Self::new(tracker, proposer, encoder, map, config.pipeline.clone())?;
+        // What a map file saved from this pipeline needs to rebuild its text encoder.
+        pipeline.live.set_metadata(MapMetadata {
+            encoder: config.encoder.clone(),
+            config_dir: Some(ctx.config_dir.clone()),
+            ..pipeline.live.metadata()
+        });
+        Ok(pipeline)
     }
 
     /// Assembles a pipeline from stages built elsewhere.
@@ -206,18 +340,28 @@ impl Pipeline {
             });
         }
         config.validate()?;
+        let encoder: Option<Arc<dyn Encoder>> = encoder.map(Arc::from);
+        let live = LiveMap::new(map, encoder.clone());
         Ok(Self {
             tracker,
             proposer,
             encoder,
-            map,
+            live,
             config,
         })
     }
 
-    /// The map, if the config has one.
-    pub fn map(&self) -> Option<&dyn EmbeddingMap> {
-        self.map.as_deref()
+    /// The map, if the config has one, read-locked: hold it briefly while a run is in progress on
+    /// another thread (integration waits for it). Other threads use [`Pipeline::live`].
+    pub fn map(&self) -> Option<MapRead<'_>> {
+        self.live.map_read()
+    }
+
+    /// A handle on the map, its encoder and the run's progress that other threads can hold while
+    /// [`Pipeline::run`] integrates: queries, snapshots and saves never see a half-integrated
+    /// frame.
+    pub fn live(&self) -> LiveMap {
+        self.live.clone()
     }
 
     /// The encoder, if the config has one.
@@ -269,12 +413,24 @@ impl Pipeline {
         let start = Instant::now();
         let (sender, receiver) = sync_channel::<Tracked>(self.config.queue_capacity);
         let config = self.config.clone();
-        let integrate = self.map.is_some();
+        let integrate = self.live.has_map();
         let tracker = &mut self.tracker;
         let proposer = self.proposer.as_deref();
         let encoder = self.encoder.as_deref();
-        let map = self.map.as_mut();
-        let watchers = Watchers { progress, observer };
+        let live = &self.live;
+        live.update_status(|status| {
+            status.state = RunState::Running;
+            status.frames_total = total;
+            status.frames_tracked = 0;
+            status.frames_lost = 0;
+            status.frames_skipped = 0;
+            status.frames_integrated = 0;
+        });
+        let watchers = Watchers {
+            progress,
+            observer,
+            live,
+        };
         let (tracking, embedding) = std::thread::scope(|scope| {
             let tracking = scope.spawn(move || {
                 track_frames(
@@ -287,15 +443,24 @@ impl Pipeline {
                     watchers,
                 )
             });
-            let embedding = embed_frames(receiver, proposer, encoder, map, watchers);
+            let embedding = embed_frames(receiver, proposer, encoder, integrate, watchers);
             let tracking = tracking.join().map_err(|_| CoreError::Worker {
                 reason: "the tracking thread panicked".into(),
             });
             (tracking, embedding)
         });
         // An embedding error makes the tracking thread stop early; report the cause, not that.
-        let embedding = embedding?;
-        let tracking = tracking??;
+        let outcome = match (embedding, tracking) {
+            (Err(e), _) | (Ok(_), Err(e) | Ok(Err(e))) => Err(e),
+            (Ok(embedding), Ok(Ok(tracking))) => Ok((embedding, tracking)),
+        };
+        self.live.update_status(|status| {
+            status.state = match &outcome {
+                Ok(_) => RunState::Finished,
+                Err(e) => RunState::Failed(e.to_string()),
+            }
+        });
+        let (embedding, tracking) = outcome?;
         let mut stage_ms = BTreeMap::new();
         stage_ms.insert("load", tracking.load);
         stage_ms.insert("track", tracking.track);
@@ -316,11 +481,12 @@ impl Pipeline {
     }
 }
 
-/// Who hears about each frame: the progress callback and the observer.
+/// Who hears about each frame: the progress callback, the observer and the live map's status.
 #[derive(Clone, Copy)]
 struct Watchers<'a> {
     progress: &'a (dyn Fn(Progress) + Sync),
     observer: &'a dyn RunObserver,
+    live: &'a LiveMap,
 }
 
 fn track_frames(
@@ -330,7 +496,11 @@ fn track_frames(
     config: &PipelineConfig,
     integrate: bool,
     sender: SyncSender<Tracked>,
-    Watchers { progress, observer }: Watchers<'_>,
+    Watchers {
+        progress,
+        observer,
+        live,
+    }: Watchers<'_>,
 ) -> Result<TrackingOutcome> {
     let mut out = TrackingOutcome::default();
     let started = Instant::now();
@@ -355,6 +525,16 @@ fn track_frames(
             TrackingState::Tracking => None,
         };
         let lost = lost_reason.is_some();
+        live.update_status(|status| {
+            status.frames_tracked += 1;
+            status.frames_lost += usize::from(lost);
+            status.latest_pose = Some(PoseStamp {
+                index: frame.index,
+                timestamp: frame.timestamp,
+                pose: tracked.pose,
+                lost,
+            });
+        });
         out.trajectory.push(TrajectoryEntry {
             index: frame.index,
             timestamp: frame.timestamp,
@@ -384,6 +564,7 @@ fn track_frames(
                 Ok(()) => {}
                 Err(TrySendError::Full(item)) => {
                     out.skipped += 1;
+                    live.update_status(|status| status.frames_skipped += 1);
                     progress(Progress::Skipped {
                         index: item.frame.index,
                     });
@@ -399,8 +580,12 @@ fn embed_frames(
     receiver: Receiver<Tracked>,
     proposer: Option<&dyn RegionProposer>,
     encoder: Option<&dyn Encoder>,
-    mut map: Option<&mut Box<dyn EmbeddingMap>>,
-    Watchers { progress, observer }: Watchers<'_>,
+    integrate: bool,
+    Watchers {
+        progress,
+        observer,
+        live,
+    }: Watchers<'_>,
 ) -> Result<EmbeddingOutcome> {
     let mut out = EmbeddingOutcome::default();
     // Dropping the receiver on error (by returning) unblocks and stops the tracking thread.
@@ -429,19 +614,32 @@ fn embed_frames(
             }
             None => None,
         };
-        if let Some(map) = map.as_mut() {
+        if integrate {
             let t = Instant::now();
-            let _: IntegrationStats = map.integrate(&Observation {
-                frame: &frame,
-                pose: &pose,
-                embeddings: embeddings.as_ref(),
-            })?;
+            // The write lock covers exactly one integration: readers see whole frames only.
+            let map_len = live.write(|state| -> Result<usize> {
+                let _: IntegrationStats = state.map.integrate(&Observation {
+                    frame: &frame,
+                    pose: &pose,
+                    embeddings: embeddings.as_ref(),
+                })?;
+                state.frames_integrated += 1;
+                state.last_frame = Some(frame.index);
+                Ok(state.map.len())
+            })??;
             out.integrate.add(t);
             out.processed += 1;
-            observer.frame_integrated(&frame, &pose, &regions, &***map);
+            live.update_status(|status| {
+                status.frames_integrated += 1;
+                status.map_len = map_len;
+            });
+            // Only this thread writes, so the map read now is the one just integrated.
+            if let Some(map) = live.map_read() {
+                observer.frame_integrated(&frame, &pose, &regions, &*map);
+            }
             progress(Progress::Integrated {
                 index: frame.index,
-                map_len: map.len(),
+                map_len,
             });
         }
     }

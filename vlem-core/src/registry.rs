@@ -16,7 +16,7 @@ use std::sync::OnceLock;
 
 use serde::de::DeserializeOwned;
 
-use crate::config::StageConfig;
+use crate::config::{Config, StageConfig, config_folder};
 use crate::error::{CoreError, Result};
 use crate::traits::embedding_map::EmbeddingMap;
 use crate::traits::encoder::Encoder;
@@ -84,6 +84,21 @@ pub struct BuildContext {
 }
 
 impl BuildContext {
+    /// The context of a config in `config_dir`, made absolute so relative paths resolve from any
+    /// working directory.
+    ///
+    /// # Errors
+    /// [`CoreError::Io`] when the folder does not exist.
+    pub fn for_config_dir(config_dir: &std::path::Path) -> Result<Self> {
+        let config_dir = config_dir
+            .canonicalize()
+            .map_err(|e| CoreError::io(config_dir, e))?;
+        Ok(Self {
+            config_dir,
+            embedding_dim: None,
+        })
+    }
+
     /// Resolves a path from a config parameter against the config's directory.
     pub fn resolve(&self, path: &std::path::Path) -> PathBuf {
         if path.is_absolute() {
@@ -92,6 +107,18 @@ impl BuildContext {
             self.config_dir.join(path)
         }
     }
+}
+
+/// Reads a config file and the build context its relative paths resolve against (its folder,
+/// made absolute so the paths resolve from anywhere): what every front-end needs to build a
+/// pipeline from a file.
+///
+/// # Errors
+/// As [`Config::from_file`], and [`CoreError::Io`] when the folder cannot be made absolute.
+pub fn load_config(path: &std::path::Path) -> Result<(Config, BuildContext)> {
+    let config = Config::from_file(path)?;
+    let ctx = BuildContext::for_config_dir(config_folder(path))?;
+    Ok((config, ctx))
 }
 
 /// Signature of a build function: the stage's parameters (its config section without `kind`).

@@ -193,6 +193,15 @@ pub enum DatasetError {
         /// The number of frames.
         len: usize,
     },
+    /// A run with neither a dataset folder given nor `[dataset] path` in its config.
+    #[error("no dataset: pass --dataset DIR or set [dataset] path in the config")]
+    NoFolder,
+    /// A dataset folder that does not exist.
+    #[error("dataset folder {} does not exist (pass --dataset DIR to use another one)", path.display())]
+    NoSuchFolder {
+        /// The folder.
+        path: PathBuf,
+    },
     /// A `[dataset.synthetic]` value (or a `[dataset]` setting) the synthetic scene cannot use.
     #[error("[dataset.synthetic] {key}: {message}")]
     SyntheticConfig {

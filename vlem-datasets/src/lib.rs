@@ -115,6 +115,31 @@ fn unknown_layout(dir: &Path) -> DatasetError {
     }
 }
 
+/// The dataset folder of a run: `dataset` when given (a command-line override), else
+/// `[dataset] path` resolved against the config's folder (`ctx`). A synthetic scene has no folder:
+/// it gets the config's folder, which [`open`] ignores.
+///
+/// # Errors
+/// [`DatasetError::NoFolder`] when neither is set, [`DatasetError::NoSuchFolder`] when the folder
+/// does not exist.
+pub fn dataset_folder(
+    config: &vlem_core::Config,
+    ctx: &vlem_core::BuildContext,
+    dataset: Option<&Path>,
+) -> Result<std::path::PathBuf> {
+    let synthetic = config.dataset.kind == DatasetKind::Synthetic;
+    let dir = match (dataset, &config.dataset.path) {
+        (Some(dir), _) => dir.to_path_buf(),
+        (None, Some(path)) => ctx.resolve(path),
+        (None, None) if synthetic => ctx.config_dir.clone(),
+        (None, None) => return Err(DatasetError::NoFolder),
+    };
+    if !synthetic && !dir.is_dir() {
+        return Err(DatasetError::NoSuchFolder { path: dir });
+    }
+    Ok(dir)
+}
+
 /// Opens the dataset folder `dir` with the reader that `config.kind` names, or the one
 /// [`detect_kind`] picks for `auto`. `config.path` is not used: the caller resolves it to `dir`.
 /// `kind = "synthetic"` needs no folder: `dir` is ignored and the scene of `[dataset.synthetic]` is

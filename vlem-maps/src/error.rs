@@ -2,7 +2,7 @@
 
 use vlem_core::{CoreError, StageKind};
 
-/// Failures of the maps and segmenters in this crate.
+/// Failures of the maps in this crate.
 #[derive(Debug, thiserror::Error)]
 #[non_exhaustive]
 pub enum MapError {
@@ -45,50 +45,6 @@ pub enum MapError {
         embeddings: (u32, u32),
         /// Depth width and height.
         depth: (u32, u32),
-    },
-    /// Score lists that do not match the points.
-    #[error("query {query} has {actual} scores for {expected} points")]
-    ScoreCount {
-        /// Query index.
-        query: usize,
-        /// Points.
-        expected: usize,
-        /// Scores given.
-        actual: usize,
-    },
-    /// A segmenter that compares against a baseline query got no baseline scores.
-    #[error(
-        "no similarities for the baseline query \"{baseline}\": the caller must score it (see `Segmenter::baseline_query`)"
-    )]
-    MissingBaseline {
-        /// The baseline text.
-        baseline: String,
-    },
-    /// Baseline scores that do not match the points.
-    #[error("the baseline query has {actual} scores for {expected} points")]
-    BaselineCount {
-        /// Points.
-        expected: usize,
-        /// Scores given.
-        actual: usize,
-    },
-    /// Too few (distinct) points to place a grasp.
-    #[error("too few points for a grasp: {found} at the grasp depth, at least {needed} needed")]
-    GraspPoints {
-        /// Usable points found.
-        found: usize,
-        /// The minimum.
-        needed: usize,
-    },
-    /// The object is wider than the gripper opens at the grasp depth.
-    #[error(
-        "the object is {width:.3} m wide at the grasp depth, the gripper opens to {max_width:.3} m"
-    )]
-    GraspWidth {
-        /// Narrowest width of the object in the grasp slab (m).
-        width: f64,
-        /// The gripper's maximum opening (m).
-        max_width: f64,
     },
 }
 

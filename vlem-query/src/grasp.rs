@@ -10,7 +10,7 @@
 
 use nalgebra::{Matrix3, Rotation3, UnitQuaternion, Vector2, Vector3};
 
-use crate::error::MapError;
+use crate::error::QueryError;
 
 /// Gripper geometry and approach.
 #[derive(Clone, Debug, PartialEq)]
@@ -59,15 +59,15 @@ pub struct Grasp {
 /// The grasp for `points` (see the module docs).
 ///
 /// # Errors
-/// [`MapError::InvalidParameter`] for a zero or non-finite approach, a negative or non-finite
-/// depth, slab or maximum width; [`MapError::GraspPoints`] when fewer than `min_points` (at least
+/// [`QueryError::InvalidParameter`] for a zero or non-finite approach, a negative or non-finite
+/// depth, slab or maximum width; [`QueryError::GraspPoints`] when fewer than `min_points` (at least
 /// 3) finite points lie in the slab, or they all project onto one spot;
-/// [`MapError::GraspWidth`] when the object is wider than `max_width` there.
-pub fn grasp_from_points(points: &[[f32; 3]], params: &GraspParams) -> Result<Grasp, MapError> {
+/// [`QueryError::GraspWidth`] when the object is wider than `max_width` there.
+pub fn grasp_from_points(points: &[[f32; 3]], params: &GraspParams) -> Result<Grasp, QueryError> {
     let approach = Vector3::from(params.approach);
     let norm = approach.norm();
     if !(norm > 1e-9 && norm.is_finite()) {
-        return Err(MapError::InvalidParameter {
+        return Err(QueryError::InvalidParameter {
             name: "approach",
             reason: format!("must be a non-zero direction, got {:?}", params.approach),
         });
@@ -78,7 +78,7 @@ pub fn grasp_from_points(points: &[[f32; 3]], params: &GraspParams) -> Result<Gr
         ("max_width", params.max_width),
     ] {
         if !(value >= 0.0 && value.is_finite()) {
-            return Err(MapError::InvalidParameter {
+            return Err(QueryError::InvalidParameter {
                 name,
                 reason: format!("must be a non-negative length in metres, got {value}"),
             });
@@ -98,7 +98,7 @@ pub fn grasp_from_points(points: &[[f32; 3]], params: &GraspParams) -> Result<Gr
         .filter(|p| (p.dot(&a) - level).abs() <= params.slab / 2.0)
         .collect();
     if slab.len() < needed {
-        return Err(MapError::GraspPoints {
+        return Err(QueryError::GraspPoints {
             found: slab.len(),
             needed,
         });
@@ -120,7 +120,7 @@ pub fn grasp_from_points(points: &[[f32; 3]], params: &GraspParams) -> Result<Gr
         .collect();
     let hull = convex_hull(&projected);
     let Some((dir, width)) = min_width(&hull) else {
-        return Err(MapError::GraspPoints {
+        return Err(QueryError::GraspPoints {
             found: hull.len(),
             needed,
         });
@@ -147,7 +147,7 @@ pub fn grasp_from_points(points: &[[f32; 3]], params: &GraspParams) -> Result<Gr
         closing = -closing;
     }
     if width > params.max_width {
-        return Err(MapError::GraspWidth {
+        return Err(QueryError::GraspWidth {
             width,
             max_width: params.max_width,
         });
@@ -316,13 +316,13 @@ mod tests {
         let err =
             grasp_from_points(&[[0.0; 3], [0.01, 0.0, 0.0]], &GraspParams::default()).unwrap_err();
         assert!(
-            matches!(err, MapError::GraspPoints { needed: 3, .. }),
+            matches!(err, QueryError::GraspPoints { needed: 3, .. }),
             "{err}"
         );
         assert!(grasp_from_points(&[], &GraspParams::default()).is_err());
         // All points on one spot.
         let err = grasp_from_points(&[[0.0, 0.02, 0.0]; 5], &GraspParams::default()).unwrap_err();
-        assert!(matches!(err, MapError::GraspPoints { .. }), "{err}");
+        assert!(matches!(err, QueryError::GraspPoints { .. }), "{err}");
         let wide = f32s(&box_surface([0.0; 3], [0.12, 0.05, 0.15]));
         let err = grasp_from_points(&wide, &GraspParams::default()).unwrap_err();
         assert!(err.to_string().contains("0.120 m wide"), "{err}");

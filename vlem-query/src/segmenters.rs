@@ -13,7 +13,7 @@ pub mod gmm;
 use serde::Deserialize;
 use vlem_core::{BuildContext, PointSet, QueryScores, Segmenter, StageKind, parse_params};
 
-use crate::error::MapError;
+use crate::error::QueryError;
 
 /// `[query.segmenter] kind = "threshold"`: every point whose normalised similarity reaches the
 /// threshold, independently per query (the paper's binary thresholding).
@@ -45,7 +45,7 @@ fn build_threshold(
 ) -> vlem_core::Result<Box<dyn Segmenter>> {
     let segmenter: ThresholdSegmenter = parse_params(StageKind::Segmenter, THRESHOLD, params)?;
     if !(0.0..=1.0).contains(&segmenter.threshold) {
-        return Err(MapError::InvalidParameter {
+        return Err(QueryError::InvalidParameter {
             name: "threshold",
             reason: format!("must lie in [0, 1], got {}", segmenter.threshold),
         }
@@ -76,7 +76,7 @@ impl Segmenter for ThresholdSegmenter {
             .enumerate()
             .map(|(query, s)| {
                 if s.len() != positions.len() {
-                    return Err(MapError::ScoreCount {
+                    return Err(QueryError::ScoreCount {
                         query,
                         expected: positions.len(),
                         actual: s.len(),
@@ -140,11 +140,11 @@ impl ArgmaxSegmenter {
         &self,
         positions: &[[f32; 3]],
         scores: &QueryScores,
-    ) -> Result<Vec<Vec<usize>>, MapError> {
+    ) -> Result<Vec<Vec<usize>>, QueryError> {
         let n = positions.len();
         for (query, s) in scores.scores.iter().enumerate() {
             if s.len() != n {
-                return Err(MapError::ScoreCount {
+                return Err(QueryError::ScoreCount {
                     query,
                     expected: n,
                     actual: s.len(),
@@ -154,11 +154,11 @@ impl ArgmaxSegmenter {
         let baseline = scores
             .baseline
             .as_deref()
-            .ok_or_else(|| MapError::MissingBaseline {
+            .ok_or_else(|| QueryError::MissingBaseline {
                 baseline: self.baseline.clone(),
             })?;
         if baseline.len() != n {
-            return Err(MapError::BaselineCount {
+            return Err(QueryError::BaselineCount {
                 expected: n,
                 actual: baseline.len(),
             });
@@ -185,20 +185,20 @@ impl ArgmaxSegmenter {
 
 const ARGMAX: &str = "argmax";
 
-fn check_unit(name: &'static str, value: f32) -> Result<(), MapError> {
+fn check_unit(name: &'static str, value: f32) -> Result<(), QueryError> {
     if (0.0..=1.0).contains(&value) {
         Ok(())
     } else {
-        Err(MapError::InvalidParameter {
+        Err(QueryError::InvalidParameter {
             name,
             reason: format!("must lie in [0, 1], got {value}"),
         })
     }
 }
 
-fn check_baseline(baseline: &str) -> Result<(), MapError> {
+fn check_baseline(baseline: &str) -> Result<(), QueryError> {
     if baseline.trim().is_empty() {
-        Err(MapError::InvalidParameter {
+        Err(QueryError::InvalidParameter {
             name: "baseline",
             reason: "must be a non-empty text such as \"object\"".into(),
         })
@@ -313,17 +313,17 @@ fn build_cluster(
         .and_then(|()| check_baseline(&s.baseline))
         .and_then(|()| {
             if s.components == 0 {
-                Err(MapError::InvalidParameter {
+                Err(QueryError::InvalidParameter {
                     name: "components",
                     reason: "must be at least 1".into(),
                 })
             } else if !(s.eps > 0.0 && s.eps.is_finite()) {
-                Err(MapError::InvalidParameter {
+                Err(QueryError::InvalidParameter {
                     name: "eps",
                     reason: format!("must be a positive distance in metres, got {}", s.eps),
                 })
             } else if s.min_points == 0 {
-                Err(MapError::InvalidParameter {
+                Err(QueryError::InvalidParameter {
                     name: "min_points",
                     reason: "must be at least 1".into(),
                 })

@@ -398,7 +398,7 @@ pub fn execute(args: &StudyArgs) -> Result<()> {
     }
     let results = gather(&study, &cells_dir);
     write_csv(&args.out.join("study.csv"), &results)?;
-    let plotted = crate::study_plot::write_plots(&args.out, &results)?;
+    let plotted = super::study_plot::write_plots(&args.out, &results)?;
     println!(
         "{} of {} cells have results: {}{}",
         results.len(),

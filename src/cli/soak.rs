@@ -187,7 +187,7 @@ pub fn execute(args: &SoakArgs) -> Result<()> {
         );
     }
     let path = &args.config;
-    let mut config = crate::read_config(path)?;
+    let (mut config, ctx) = vlem_core::load_config(path)?;
     if config.dataset.kind != DatasetKind::Synthetic {
         bail!(
             "{}: vlem soak maps the synthetic scene, which has any number of frames: set \
@@ -206,7 +206,6 @@ pub fn execute(args: &SoakArgs) -> Result<()> {
         .frames = frames;
     config.dataset.synthetic = synthetic;
 
-    let ctx = crate::build_context(crate::config_folder(path))?;
     let mut pipeline = Pipeline::from_config(&config, &ctx)?;
     let mut source = vlem_datasets::open(&config.dataset, &ctx.config_dir)?;
     std::fs::create_dir_all(&args.out)
@@ -244,7 +243,7 @@ pub fn execute(args: &SoakArgs) -> Result<()> {
     };
 
     let started = Instant::now();
-    let mut samples = vec![sample(0, pipeline.map())?];
+    let mut samples = vec![sample(0, pipeline.map().as_deref())?];
     let mut totals = RunReport::default();
     let mut stage_ms: std::collections::BTreeMap<&'static str, (usize, f64)> = Default::default();
     let mut start = 0;
@@ -266,7 +265,7 @@ pub fn execute(args: &SoakArgs) -> Result<()> {
             entry.1 += t.mean_ms * t.count as f64;
         }
         start += len;
-        samples.push(sample(start, pipeline.map())?);
+        samples.push(sample(start, pipeline.map().as_deref())?);
         bar.set_message(format!(
             "map {} / {budget}, rss {:.0} MB",
             samples.last().map_or(0, |s| s.map_elements),

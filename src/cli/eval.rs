@@ -306,9 +306,8 @@ struct Opened {
 
 fn open_dataset(common: &SemsegCommon) -> Result<Opened> {
     let path = &common.config;
-    let mut config = crate::read_config(path)?;
-    let ctx = crate::build_context(crate::config_folder(path))?;
-    let dataset_dir = crate::dataset_folder(&config, &ctx, common.dataset.as_deref())?;
+    let (mut config, ctx) = vlem_core::load_config(path)?;
+    let dataset_dir = vlem_datasets::dataset_folder(&config, &ctx, common.dataset.as_deref())?;
     let config_dir = ctx.config_dir;
     if common.max_frames.is_some() {
         config.dataset.max_frames = common.max_frames;
@@ -473,12 +472,9 @@ fn evaluate_semseg3d(args: &Semseg3dArgs) -> Result<()> {
                 embedding_dim: None,
             },
         )?,
-        (None, Some(stage)) => registry.build_encoder(
-            stage,
-            &BuildContext {
-                config_dir: snapshot.metadata.config_dir.clone().unwrap_or_default(),
-                embedding_dim: None,
-            },
+        (None, Some(_)) => vlem_query::answer::encoder_for_map(
+            &snapshot.metadata,
+            &args.map.display().to_string(),
         )?,
         (None, None) => bail!(
             "neither {} nor {} names an encoder: the class names cannot be embedded",

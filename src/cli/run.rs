@@ -1,0 +1,367 @@
+//! `vlem run` and `vlem demo`: map a dataset, write the run's outputs, optionally serve the live
+//! map over HTTP while mapping (`--serve`).
+
+use std::path::{Path, PathBuf};
+use std::sync::atomic::{AtomicUsize, Ordering};
+
+use anyhow::{Context, Result};
+use clap::Args;
+use indicatif::{ProgressBar, ProgressStyle};
+use vlem_core::pipeline::{Pipeline, Progress, RunReport};
+use vlem_core::{BuildContext, Config, EmbeddingMap, Registry};
+use vlem_query::answer::{AnswerOptions, answer_snapshot, slug};
+use vlem_query::heatmap::heatmap_ply;
+use vlem_server::{QueryServer, ServeOptions};
+
+use super::RerunArgs;
+use crate::output;
+use crate::recording::{Recorder, RunRecording};
+
+/// The embedded default configuration that `vlem demo` runs.
+const DEMO_CONFIG: &str = include_str!("../../configs/demo.toml");
+/// Where the demo config's relative paths point (the repository's `configs/`).
+const DEMO_CONFIG_DIR: &str = concat!(env!("CARGO_MANIFEST_DIR"), "/configs");
+
+/// `vlem run`.
+#[derive(Args)]
+pub struct RunArgs {
+    /// Pipeline configuration (TOML).
+    #[arg(long)]
+    config: PathBuf,
+    /// Dataset folder (overrides `[dataset] path`).
+    #[arg(long)]
+    dataset: Option<PathBuf>,
+    /// Output folder.
+    #[arg(long, default_value = "out")]
+    out: PathBuf,
+    /// Process at most this many frames.
+    #[arg(long)]
+    max_frames: Option<usize>,
+    /// Do not write OUT/colour-model.ply, the dense colour model (TSDF mesh) that trackers
+    /// with a model (`frame-to-model`) export after the run.
+    #[arg(long)]
+    no_colour_model: bool,
+    #[command(flatten)]
+    serve: ServeArgs,
+    #[command(flatten)]
+    rerun: RerunArgs,
+}
+
+/// `vlem demo`.
+#[derive(Args)]
+pub struct DemoArgs {
+    /// Output folder.
+    #[arg(long, default_value = "out/demo")]
+    out: PathBuf,
+    #[command(flatten)]
+    serve: ServeArgs,
+    #[command(flatten)]
+    rerun: RerunArgs,
+}
+
+/// The query server's flags.
+#[derive(Args, Clone, Default)]
+struct ServeArgs {
+    /// Serve the live map over HTTP/JSON while mapping, on a loopback address such as
+    /// 127.0.0.1:8765 (GET /status, POST /query, GET /heatmap.ply, POST /snapshot, GET /map.vlem;
+    /// see the README). `vlem query --connect ADDR` is its client.
+    #[arg(long, value_name = "127.0.0.1:PORT")]
+    serve: Option<String>,
+    /// Keep serving after the run has finished and written its outputs, until interrupted.
+    #[arg(long, requires = "serve")]
+    serve_after: bool,
+}
+
+/// Command-line choices of `vlem run` beyond the config.
+struct RunOptions<'a> {
+    dataset: Option<&'a Path>,
+    max_frames: Option<usize>,
+    colour_model: bool,
+    serve: &'a ServeArgs,
+    rerun: &'a RerunArgs,
+}
+
+/// `vlem run`.
+///
+/// # Errors
+/// Anything that stops the run: the config, the dataset, a stage, the outputs.
+pub fn execute(args: &RunArgs) -> Result<()> {
+    let (config, ctx) = vlem_core::load_config(&args.config)?;
+    run(
+        config,
+        ctx,
+        &args.out,
+        &RunOptions {
+            dataset: args.dataset.as_deref(),
+            max_frames: args.max_frames,
+            colour_model: !args.no_colour_model,
+            serve: &args.serve,
+            rerun: &args.rerun,
+        },
+    )
+}
+
+/// `vlem demo`: the embedded config on the committed frames.
+///
+/// # Errors
+/// As [`execute`].
+pub fn demo(args: &DemoArgs) -> Result<()> {
+    let config = Config::from_toml(DEMO_CONFIG)
+        .map_err(|message| anyhow::anyhow!("embedded demo config: {message}"))?;
+    let ctx = BuildContext::for_config_dir(Path::new(DEMO_CONFIG_DIR))?;
+    run(
+        config,
+        ctx,
+        &args.out,
+        &RunOptions {
+            dataset: None,
+            max_frames: None,
+            colour_model: true,
+            serve: &args.serve,
+            rerun: &args.rerun,
+        },
+    )
+}
+
+fn run(mut config: Config, ctx: BuildContext, out: &Path, options: &RunOptions<'_>) -> Result<()> {
+    let dataset_dir = vlem_datasets::dataset_folder(&config, &ctx, options.dataset)?;
+    if options.max_frames.is_some() {
+        config.dataset.max_frames = options.max_frames;
+    }
+    let mut pipeline = Pipeline::from_config(&config, &ctx)?;
+    // Built before mapping so a bad [query.segmenter] fails at start-up, not after the run.
+    let segmenter = Registry::global()?.build_segmenter(&config.query.segmenter, &ctx)?;
+    let mut source = vlem_datasets::open(&config.dataset, &dataset_dir)?;
+    // Before mapping, so an unwritable output folder, recording or port fails now rather than
+    // after a long run.
+    std::fs::create_dir_all(out).with_context(|| format!("cannot create {}", out.display()))?;
+    let recorder = options.rerun.open()?;
+    let recording = recorder.as_ref().map(RunRecording::new);
+    let live = pipeline.live();
+    let server = options
+        .serve
+        .serve
+        .as_deref()
+        .map(|address| {
+            QueryServer::start(
+                address,
+                live.clone(),
+                ServeOptions {
+                    out_dir: out.to_path_buf(),
+                    ctx: ctx.clone(),
+                },
+            )
+        })
+        .transpose()?;
+    let total = source.len();
+    eprintln!(
+        "vlem: {} frames from {}; tracker `{}`, encoder `{}`, map `{}`",
+        total,
+        source.describe(),
+        pipeline.tracker().name(),
+        pipeline.encoder().map_or("(none)", |e| e.name()),
+        pipeline.map().map_or("(none)", |m| m.name()),
+    );
+    if let Some(server) = &server {
+        eprintln!(
+            "vlem: serving the live map on http://{} (GET /status, POST /query, GET /heatmap.ply, \
+             POST /snapshot, GET /map.vlem)",
+            server.address()
+        );
+    }
+
+    let report = track_and_map(&mut pipeline, source.as_mut(), recording.as_ref())?;
+    if let Some(failure) = recording.as_ref().and_then(RunRecording::failure) {
+        eprintln!("warning: the rerun recording stopped early: {failure}");
+    }
+    write_outputs(&config, &pipeline, &report, out)?;
+    if let (Some(recorder), Some(map)) = (&recorder, pipeline.map()) {
+        recorder.log_map(&map.coloured_points(), report.frames_total)?;
+    }
+    if options.colour_model || recorder.is_some() {
+        let written = options.colour_model.then_some(out);
+        export_colour_model(
+            pipeline.tracker(),
+            written,
+            recorder.as_ref(),
+            report.frames_total,
+        )?;
+    }
+
+    if let Some(encoder) = pipeline.encoder()
+        && live.has_map()
+        && !config.query.texts.is_empty()
+    {
+        let snapshot = live.snapshot()?;
+        let answered = answer_snapshot(
+            &snapshot,
+            encoder,
+            segmenter.as_ref(),
+            &config.query.texts,
+            &AnswerOptions::default(),
+        )?;
+        for line in answered.answer.lines() {
+            println!("{line}");
+        }
+        for (text, scores) in config.query.texts.iter().zip(&answered.scores.scores) {
+            let path = out.join(format!("query-{}.ply", slug(text)));
+            output::write_atomically(&path, &heatmap_ply(&snapshot.positions, scores, &[]))?;
+        }
+        if let Some(recorder) = &recorder {
+            super::query::record_answers(recorder, &snapshot.positions, &answered)?;
+        }
+    }
+    if let Some(recorder) = &recorder {
+        recorder.flush()?;
+        if let Some(path) = &options.rerun.rerun {
+            println!(
+                "recording: {} (open it with `rerun {}`)",
+                path.display(),
+                path.display()
+            );
+        }
+    }
+    if let Some(server) = server {
+        if options.serve.serve_after {
+            eprintln!(
+                "vlem: the run has finished; still serving on http://{} until interrupted (Ctrl-C)",
+                server.address()
+            );
+            server.wait();
+        } else {
+            server.shutdown();
+        }
+    }
+    Ok(())
+}
+
+/// Runs the pipeline with a progress bar (on a terminal).
+fn track_and_map(
+    pipeline: &mut Pipeline,
+    source: &mut dyn vlem_core::FrameSource,
+    recording: Option<&RunRecording<'_>>,
+) -> Result<RunReport> {
+    let bar = ProgressBar::new(source.len() as u64);
+    bar.set_style(
+        ProgressStyle::with_template("{bar:40} {pos}/{len} frames {msg} [{elapsed_precise}<{eta}]")
+            .unwrap_or_else(|_| ProgressStyle::default_bar()),
+    );
+    let (integrated, skipped, points) = (
+        AtomicUsize::new(0),
+        AtomicUsize::new(0),
+        AtomicUsize::new(0),
+    );
+    let on_progress = |event: Progress| {
+        match event {
+            Progress::Tracked { .. } => bar.inc(1),
+            Progress::Integrated { map_len, .. } => {
+                integrated.fetch_add(1, Ordering::Relaxed);
+                points.store(map_len, Ordering::Relaxed);
+            }
+            Progress::Skipped { .. } => {
+                skipped.fetch_add(1, Ordering::Relaxed);
+            }
+        }
+        bar.set_message(format!(
+            "({} integrated, {} skipped, {} map points)",
+            integrated.load(Ordering::Relaxed),
+            skipped.load(Ordering::Relaxed),
+            points.load(Ordering::Relaxed)
+        ));
+    };
+    let observer: &dyn vlem_core::RunObserver = match recording {
+        Some(recording) => recording,
+        None => &vlem_core::NoObserver,
+    };
+    let report = pipeline.run_observed(source, None, &on_progress, observer)?;
+    bar.finish_and_clear();
+    Ok(report)
+}
+
+/// OUT/trajectory.tum, OUT/reference.tum (when the tracker estimated poses on a dataset that has
+/// them), OUT/map.vlem and OUT/stats.json, and the summary lines.
+fn write_outputs(
+    config: &Config,
+    pipeline: &Pipeline,
+    report: &RunReport,
+    out: &Path,
+) -> Result<()> {
+    vlem_datasets::trajectory::write_tum(&out.join("trajectory.tum"), &report.poses())?;
+    // The dataset's own poses beside the estimate, so `vlem eval trajectory` needs nothing else.
+    if let Some(reference) = report.reference_poses()
+        && !pipeline.tracker().needs_dataset_poses()
+    {
+        vlem_datasets::trajectory::write_tum(&out.join("reference.tum"), &reference)?;
+    }
+    let live = pipeline.live();
+    if live.has_map() {
+        live.save(&out.join("map.vlem"))?;
+    }
+    let map = pipeline.map();
+    let stats = report.stats(
+        config.pipeline.mode,
+        map.as_deref(),
+        output::peak_resident_bytes(),
+    );
+    let json = serde_json::to_string(&stats).context("cannot encode stats.json")?;
+    output::write_atomically(&out.join("stats.json"), json.as_bytes())?;
+    print_summary(report, map.as_deref(), out);
+    Ok(())
+}
+
+/// Writes OUT/colour-model.ply (with `out`) and records the mesh (with `recorder`) when the
+/// tracker keeps a dense colour model.
+fn export_colour_model(
+    tracker: &dyn vlem_core::Tracker,
+    out: Option<&Path>,
+    recorder: Option<&Recorder>,
+    frames: usize,
+) -> Result<()> {
+    let mesh = match tracker.colour_model() {
+        Ok(mesh) => mesh,
+        Err(vlem_core::CoreError::Unsupported { .. }) => return Ok(()),
+        Err(e) => return Err(e.into()),
+    };
+    if let Some(out) = out {
+        let path = out.join("colour-model.ply");
+        output::write_atomically(&path, &output::mesh_ply(&mesh))?;
+        println!(
+            "dense colour model: {} ({} vertices, {} triangles)",
+            path.display(),
+            mesh.vertices.len(),
+            mesh.triangles.len()
+        );
+    }
+    if let Some(recorder) = recorder {
+        recorder.log_colour_model(&mesh, frames)?;
+    }
+    Ok(())
+}
+
+fn print_summary(report: &RunReport, map: Option<&dyn EmbeddingMap>, out: &Path) {
+    println!(
+        "{} frames: {} tracked, {} integrated, {} skipped, {} lost in {:.1} s",
+        report.frames_total,
+        report.frames_tracked,
+        report.frames_processed,
+        report.frames_skipped,
+        report.frames_lost,
+        report.wall_seconds
+    );
+    let stages: Vec<String> = report
+        .stage_ms
+        .iter()
+        .map(|(stage, t)| format!("{stage} {:.1}", t.mean_ms))
+        .collect();
+    println!("mean ms per frame: {}", stages.join(", "));
+    if let Some(map) = map {
+        println!(
+            "map `{}`: {} points, {}-d embeddings, {:.1} MB",
+            map.name(),
+            map.len(),
+            map.dim(),
+            map.memory_bytes() as f64 / 1e6
+        );
+    }
+    println!("wrote {}", out.display());
+}

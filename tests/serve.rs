@@ -1,0 +1,331 @@
+//! `vlem run --serve` end to end: the demo run serves its live map on a loopback port, a plain
+//! HTTP client (ureq, not vlem's own client) exercises every endpoint and its error answers, and
+//! `vlem query --connect` prints what `vlem query --map` prints for the saved map.
+#![cfg(all(feature = "colour-names", feature = "point-cloud"))]
+#![allow(
+    clippy::unwrap_used,
+    clippy::expect_used,
+    clippy::panic,
+    reason = "tests"
+)]
+
+mod common;
+
+use std::io::{BufRead, BufReader};
+use std::path::Path;
+use std::process::{Child, Command, Stdio};
+use std::time::{Duration, Instant};
+
+use common::{ok, repo};
+
+/// A `vlem run --serve 127.0.0.1:0 --serve-after` child, killed on drop.
+struct Served {
+    child: Child,
+    address: String,
+}
+
+impl Drop for Served {
+    fn drop(&mut self) {
+        let _ = self.child.kill();
+        let _ = self.child.wait();
+    }
+}
+
+/// Starts the demo config with a server and returns once the server's address is printed.
+fn serve(out: &Path, extra: &[&str]) -> Served {
+    let mut child = Command::new(env!("CARGO_BIN_EXE_vlem"))
+        .args(["run", "--config", "configs/demo.toml", "--out"])
+        .arg(out)
+        .args(["--serve", "127.0.0.1:0", "--serve-after"])
+        .args(extra)
+        .current_dir(repo())
+        .stdout(Stdio::null())
+        .stderr(Stdio::piped())
+        .spawn()
+        .unwrap();
+    let stderr = child.stderr.take().unwrap();
+    let (tx, rx) = std::sync::mpsc::channel();
+    std::thread::spawn(move || {
+        for line in BufReader::new(stderr).lines().map_while(Result::ok) {
+            if let Some(rest) = line.split("serving the live map on http://").nth(1) {
+                let address = rest
+                    .split_whitespace()
+                    .next()
+                    .unwrap_or_default()
+                    .to_owned();
+                let _ = tx.send(address);
+            }
+        }
+    });
+    let address = rx
+        .recv_timeout(Duration::from_secs(60))
+        .expect("vlem run prints the address it serves on");
+    Served { child, address }
+}
+
+fn agent() -> ureq::Agent {
+    ureq::Agent::config_builder()
+        .http_status_as_error(false)
+        .timeout_global(Some(Duration::from_secs(60)))
+        .build()
+        .new_agent()
+}
+
+fn get(address: &str, path: &str) -> (u16, Vec<u8>) {
+    let mut response = agent()
+        .get(format!("http://{address}{path}"))
+        .call()
+        .unwrap();
+    let status = response.status().as_u16();
+    let body = response
+        .body_mut()
+        .with_config()
+        .limit(u64::MAX)
+        .read_to_vec()
+        .unwrap();
+    (status, body)
+}
+
+fn post(address: &str, path: &str, body: &str) -> (u16, serde_json::Value) {
+    let mut response = agent()
+        .post(format!("http://{address}{path}"))
+        .header("Content-Type", "application/json")
+        .send(body)
+        .unwrap();
+    let status = response.status().as_u16();
+    let text = response.body_mut().read_to_string().unwrap();
+    let value = serde_json::from_str(&text).unwrap_or_else(|_| panic!("JSON answer: {text}"));
+    (status, value)
+}
+
+fn json(body: &[u8]) -> serde_json::Value {
+    serde_json::from_slice(body).unwrap()
+}
+
+/// Polls `/status` until the run has finished.
+fn wait_finished(address: &str) -> serde_json::Value {
+    let start = Instant::now();
+    loop {
+        let (status, body) = get(address, "/status");
+        assert_eq!(status, 200);
+        let value = json(&body);
+        if value["run"]["state"] == "finished" {
+            return value;
+        }
+        assert!(
+            start.elapsed() < Duration::from_secs(120),
+            "the run finishes: {value}"
+        );
+        std::thread::sleep(Duration::from_millis(50));
+    }
+}
+
+#[test]
+fn every_endpoint_answers_and_bad_requests_get_4xx() {
+    let dir = tempfile::tempdir().unwrap();
+    let served = serve(dir.path(), &[]);
+    let address = served.address.clone();
+
+    // Status answers while mapping and after.
+    let (status, body) = get(&address, "/status");
+    assert_eq!(status, 200);
+    let first = json(&body);
+    assert_eq!(first["encoder"], "colour-names");
+    let done = wait_finished(&address);
+    assert!(
+        first["run"]["frames_integrated"].as_u64() <= done["run"]["frames_integrated"].as_u64()
+    );
+    assert_eq!(done["run"]["frames_total"], 30);
+    assert_eq!(done["run"]["frames_integrated"], 30);
+    assert_eq!(done["map"]["kind"], "point-cloud");
+    assert_eq!(done["map"]["frames_integrated"], 30);
+    let points = done["map"]["points"].as_u64().unwrap();
+    assert!(points > 1000);
+    let pose = &done["run"]["latest_pose"];
+    assert_eq!(pose["index"], 29);
+    assert_eq!(pose["pose"]["orientation"].as_array().unwrap().len(), 4);
+
+    // Queries, with point sets and a grasp.
+    let (status, answer) = post(
+        &address,
+        "/query",
+        r#"{"texts": ["white wall", "brown"], "segmenter": "cluster", "baseline": "grey", "grasp": true, "indices": true}"#,
+    );
+    assert_eq!(status, 200, "{answer}");
+    assert_eq!(answer["segmenter"], "cluster");
+    assert_eq!(answer["points"].as_u64(), Some(points));
+    let queries = answer["queries"].as_array().unwrap();
+    assert_eq!(queries.len(), 2);
+    assert_eq!(queries[0]["text"], "white wall");
+    assert!(queries[0]["best"]["score"].as_f64().unwrap() > 0.5);
+    let sets = queries[0]["sets"].as_array().unwrap();
+    assert!(!sets.is_empty());
+    assert_eq!(
+        sets[0]["indices"].as_array().unwrap().len() as u64,
+        sets[0]["points"].as_u64().unwrap()
+    );
+    assert!(queries[0]["grasp"]["outcome"].is_string());
+
+    // The heatmap is a binary PLY with one vertex per map point.
+    let (status, ply) = get(&address, "/heatmap.ply?text=white+wall");
+    assert_eq!(status, 200);
+    let header = String::from_utf8_lossy(&ply[..300.min(ply.len())]).into_owned();
+    assert!(
+        header.starts_with("ply\nformat binary_little_endian 1.0"),
+        "{header}"
+    );
+    assert!(
+        header.contains(&format!("element vertex {points}\n")),
+        "{header}"
+    );
+
+    // Snapshots: saved on the server's side, and downloaded.
+    let (status, saved) = post(&address, "/snapshot", r#"{"path": "snap.vlem"}"#);
+    assert_eq!(status, 200, "{saved}");
+    assert_eq!(saved["points"].as_u64(), Some(points));
+    let snap = vlem_core::read_map_file(&dir.path().join("snap.vlem")).unwrap();
+    assert_eq!(snap.len() as u64, points);
+    let (status, file) = get(&address, "/map.vlem");
+    assert_eq!(status, 200);
+    let downloaded = vlem_core::mapfile::map_file_from_bytes(&file, Path::new("map.vlem")).unwrap();
+    assert_eq!(downloaded, snap);
+
+    // Bad requests: a message and a 4xx, and the server keeps serving.
+    let cases: [(&str, &str, u16, &str); 5] = [
+        ("/query", "not json", 400, "bad query request"),
+        (
+            "/query",
+            r#"{"texts": ["red"], "colour": 1}"#,
+            400,
+            "unknown field",
+        ),
+        ("/query", r#"{"texts": []}"#, 400, "no query texts"),
+        (
+            "/query",
+            r#"{"texts": ["red"], "segmenter": "nope"}"#,
+            400,
+            "nope",
+        ),
+        (
+            "/query",
+            r#"{"texts": ["coffee machine"]}"#,
+            422,
+            "cannot embed the query",
+        ),
+    ];
+    for (path, body, code, message) in cases {
+        let (status, reply) = post(&address, path, body);
+        assert_eq!(status, code, "{body}: {reply}");
+        let error = reply["error"].as_str().unwrap();
+        assert!(error.contains(message), "{body}: {error}");
+    }
+    let (status, body) = get(&address, "/nowhere");
+    assert_eq!(status, 404);
+    assert!(
+        json(&body)["error"]
+            .as_str()
+            .unwrap()
+            .contains("POST /query")
+    );
+    let (status, _) = get(&address, "/query");
+    assert_eq!(status, 405);
+    let (status, body) = get(&address, "/heatmap.ply");
+    assert_eq!(status, 400);
+    assert!(
+        json(&body)["error"]
+            .as_str()
+            .unwrap()
+            .contains("exactly one text")
+    );
+    let (status, _) = get(&address, "/status");
+    assert_eq!(status, 200, "still serving after the bad requests");
+}
+
+#[test]
+fn query_connect_prints_what_query_map_prints() {
+    let dir = tempfile::tempdir().unwrap();
+    let served = serve(dir.path(), &[]);
+    wait_finished(&served.address);
+    let map = dir.path().join("map.vlem");
+    let map = map.to_str().unwrap();
+    for args in [
+        vec!["white wall", "brown"],
+        vec![
+            "--segmenter",
+            "cluster",
+            "--baseline",
+            "grey",
+            "--grasp",
+            "white wall",
+        ],
+    ] {
+        let mut local = vec!["query", "--map", map];
+        local.extend(&args);
+        let mut remote = vec!["query", "--connect", &served.address];
+        remote.extend(&args);
+        let local = ok(&local);
+        let remote = ok(&remote);
+        // The first line names the source (a file or an address); the answers are the same.
+        let answers = |out: &str| out.lines().skip(1).map(str::to_owned).collect::<Vec<_>>();
+        assert!(!answers(&local).is_empty());
+        assert_eq!(answers(&local), answers(&remote), "{args:?}");
+        assert!(
+            remote
+                .lines()
+                .next()
+                .unwrap()
+                .contains("30 frames integrated"),
+            "{remote}"
+        );
+    }
+    // A heatmap through the server is the same file as from the map.
+    let local_ply = dir.path().join("local.ply");
+    let remote_ply = dir.path().join("remote.ply");
+    ok(&[
+        "query",
+        "--map",
+        map,
+        "--ply",
+        local_ply.to_str().unwrap(),
+        "brown",
+    ]);
+    ok(&[
+        "query",
+        "--connect",
+        &served.address,
+        "--ply",
+        remote_ply.to_str().unwrap(),
+        "brown",
+    ]);
+    assert_eq!(
+        std::fs::read(local_ply).unwrap(),
+        std::fs::read(remote_ply).unwrap()
+    );
+}
+
+#[test]
+fn serving_refuses_non_loopback_addresses_and_connect_names_the_server() {
+    let dir = tempfile::tempdir().unwrap();
+    let out = common::fails(&[
+        "run",
+        "--config",
+        "configs/demo.toml",
+        "--out",
+        dir.path().to_str().unwrap(),
+        "--serve",
+        "0.0.0.0:8765",
+    ]);
+    assert!(out.contains("loopback only"), "{out}");
+    // Nothing listens on this port (bound and released just now).
+    let port = std::net::TcpListener::bind("127.0.0.1:0")
+        .unwrap()
+        .local_addr()
+        .unwrap()
+        .port();
+    let address = format!("127.0.0.1:{port}");
+    let out = common::fails(&["query", "--connect", &address, "red"]);
+    assert!(
+        out.contains(&format!("cannot reach the vlem server at {address}")),
+        "{out}"
+    );
+}

@@ -1,0 +1,25 @@
+//! vlem-server: the live map of a running pipeline over HTTP/JSON, and the client that asks it.
+//!
+//! Why it exists: a robot, a notebook or a second terminal wants to ask "where is the mug?" while
+//! `vlem run` is still mapping. [`QueryServer`] serves a [`vlem_core::live::LiveMap`] on a
+//! loopback address with a few worker threads; every answer comes from `vlem-query`, the same
+//! code `vlem query --map` runs, so a live answer and a saved-map answer print the same. A request
+//! never stops the mapping run: bad requests get a 4xx status with a message, and a handler that
+//! fails unexpectedly answers 500.
+//!
+//! Endpoints (JSON unless said otherwise; see [`api`] for the bodies):
+//! - `GET /status`: the run's counters, the latest pose and the map's size ([`api::Status`]);
+//! - `POST /query`: texts → answers ([`api::QueryRequest`] → [`vlem_query::answer::Answer`]);
+//! - `GET /heatmap.ply?text=...`: one text's heatmap as binary PLY;
+//! - `POST /snapshot`: save the map as it is to a map file on the server's machine
+//!   ([`api::SnapshotRequest`] → [`vlem_core::live::SavedMap`]);
+//! - `GET /map.vlem`: the map as it is, as a map file in the response body.
+
+pub mod api;
+mod client;
+mod error;
+mod server;
+
+pub use client::Client;
+pub use error::ServerError;
+pub use server::{QueryServer, ServeOptions};
