@@ -246,7 +246,13 @@ fn query_connect_prints_what_query_map_prints() {
     let dir = tempfile::tempdir().unwrap();
     let served = serve(dir.path(), &[]);
     wait_finished(&served.address);
+    // The run writes its outputs after the pipeline has finished.
     let map = dir.path().join("map.vlem");
+    let start = Instant::now();
+    while !map.exists() {
+        assert!(start.elapsed() < Duration::from_secs(60), "the run writes map.vlem");
+        std::thread::sleep(Duration::from_millis(50));
+    }
     let map = map.to_str().unwrap();
     for args in [
         vec!["white wall", "brown"],
