@@ -250,7 +250,10 @@ fn query_connect_prints_what_query_map_prints() {
     let map = dir.path().join("map.vlem");
     let start = Instant::now();
     while !map.exists() {
-        assert!(start.elapsed() < Duration::from_secs(60), "the run writes map.vlem");
+        assert!(
+            start.elapsed() < Duration::from_secs(60),
+            "the run writes map.vlem"
+        );
         std::thread::sleep(Duration::from_millis(50));
     }
     let map = map.to_str().unwrap();
