@@ -11,6 +11,7 @@ mod recording;
 mod soak;
 mod study;
 mod study_plot;
+mod study_result;
 
 use std::path::{Path, PathBuf};
 use std::sync::atomic::{AtomicUsize, Ordering};
