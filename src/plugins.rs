@@ -1,23 +1,23 @@
-//! Links every plugin crate into the binary and names the cargo feature of each optional one.
+//! Links every plugin crate into the binary.
 //!
 //! `inventory` registrations live in the crates that define them; a crate that is a dependency but
 //! never referenced is not linked and its registrations vanish without a word. Every plugin crate
 //! the binary depends on is therefore referenced here, and `tests/cli.rs` checks the names that
 //! `vlem plugins` lists.
 //!
-//! Adding a plugin: add the crate as an optional dependency with a feature of the same name in the
-//! root `Cargo.toml`, reference it below under that feature, and add a `feature_hint!` line so a
-//! binary built without it tells the user which feature to enable.
+//! Each crate also declares, with `feature_hint!`, the cargo feature of every optional
+//! implementation it owns, whether or not that feature is on, so that a binary built without it
+//! tells the user which feature to enable. For that hint to be linked the crate must be linked in
+//! every build: a cargo feature of the `vlem` package turns on what a crate registers (as
+//! `colour-names` turns on `vlem-plugin-colour-names/colour-names`), never whether it is a
+//! dependency.
+//!
+//! Adding a plugin: add the crate as a dependency in the root `Cargo.toml` with its registering
+//! feature off, a feature of the `vlem` package that turns it on, reference the crate below, and
+//! declare the feature with `feature_hint!` in the plugin crate.
 
-// Its backends register only when their cargo features are on; its feature hints always do.
 use vlem_backends as _;
 use vlem_maps as _;
-#[cfg(feature = "colour-names")]
 use vlem_plugin_colour_names as _;
 use vlem_query as _;
 use vlem_trackers as _;
-
-vlem_core::feature_hint!(Encoder, "colour-names", "colour-names");
-vlem_core::feature_hint!(Map, "point-cloud", "point-cloud");
-vlem_core::feature_hint!(Map, "voxel", "voxel");
-vlem_core::feature_hint!(Map, "segment", "segment");

@@ -1,4 +1,4 @@
-//! ScanNet text files: `pose/N.txt` ([`vlem_datasets::scannet::pose_from_str`]) and
+//! ScanNet text files: `pose/N.txt` ([`vlem_datasets::trajectory::scannet_pose_from_str`]) and
 //! `intrinsic/intrinsic_depth.txt` ([`vlem_datasets::scannet::depth_intrinsics_from_str`]), 4x4
 //! matrices one row per line.
 #![no_main]
@@ -7,13 +7,14 @@ use std::path::Path;
 
 use libfuzzer_sys::fuzz_target;
 use vlem_core::types::pose_is_finite;
-use vlem_datasets::scannet::{depth_intrinsics_from_str, pose_from_str};
+use vlem_datasets::scannet::depth_intrinsics_from_str;
+use vlem_datasets::trajectory::scannet_pose_from_str;
 
 fuzz_target!(|data: &[u8]| {
     let Ok(text) = std::str::from_utf8(data) else {
         return;
     };
-    if let Ok(pose) = pose_from_str(text, Path::new("pose/0.txt"), 0) {
+    if let Ok(pose) = scannet_pose_from_str(text, Path::new("pose/0.txt"), 0) {
         assert!(pose_is_finite(&pose), "{pose:?}");
         assert!((pose.rotation.norm() - 1.0).abs() < 1e-6, "{pose:?}");
     }

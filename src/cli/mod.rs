@@ -8,6 +8,7 @@ pub mod run;
 pub mod soak;
 pub mod study;
 mod study_plot;
+mod study_result;
 
 use std::path::PathBuf;
 

@@ -5,7 +5,7 @@
 
 use std::path::PathBuf;
 
-use crate::registry::StageKind;
+use crate::stage::StageKind;
 
 /// Every way a core operation can fail.
 #[derive(Debug, thiserror::Error)]

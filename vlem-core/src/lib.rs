@@ -5,20 +5,24 @@
 
 pub mod config;
 pub mod embeddings;
-pub mod error;
+mod error;
 pub mod live;
 pub mod mapfile;
 pub mod pipeline;
 pub mod query;
-pub mod registry;
-pub mod traits;
+mod registry;
+mod stage;
+mod traits;
 pub mod types;
 
 pub use config::{Config, StageConfig};
 pub use embeddings::{EmbeddingLayout, NO_SEGMENT, PixelEmbeddings};
 pub use error::{CoreError, Result};
 pub use mapfile::{MapMetadata, MapSnapshot, read_map_file, write_map_file};
-pub use registry::{BuildContext, Registry, StageKind, load_config, parse_params};
+pub use registry::{
+    BuildContext, BuildFn, Builder, FeatureHint, Registration, Registry, load_config, parse_params,
+};
+pub use stage::StageKind;
 pub use traits::embedding_map::{EmbeddingMap, IntegrationStats, Observation};
 pub use traits::encoder::Encoder;
 pub use traits::frame_source::FrameSource;
@@ -30,3 +34,8 @@ pub use types::{
     ColouredMesh, DepthImage, Frame, Intrinsics, LabelImage, LabelNames, PixelRect, Pose, Region,
     RgbImage, RigidF32,
 };
+
+#[doc(hidden)]
+pub mod __private {
+    pub use inventory;
+}

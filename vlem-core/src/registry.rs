@@ -10,7 +10,6 @@
 //! `vlem` binary), and a test there checks the expected names.
 
 use std::collections::BTreeMap;
-use std::fmt;
 use std::path::PathBuf;
 use std::sync::OnceLock;
 
@@ -18,60 +17,12 @@ use serde::de::DeserializeOwned;
 
 use crate::config::{Config, StageConfig, config_folder};
 use crate::error::{CoreError, Result};
+use crate::stage::StageKind;
 use crate::traits::embedding_map::EmbeddingMap;
 use crate::traits::encoder::Encoder;
 use crate::traits::region_proposer::RegionProposer;
 use crate::traits::segmenter::Segmenter;
 use crate::traits::tracker::Tracker;
-
-/// The pipeline stages that have pluggable implementations.
-#[derive(Clone, Copy, Debug, PartialEq, Eq, PartialOrd, Ord, Hash)]
-pub enum StageKind {
-    /// [`Tracker`], config section `[tracker]`.
-    Tracker,
-    /// [`RegionProposer`], config section `[proposer]`.
-    Proposer,
-    /// [`Encoder`], config section `[encoder]`.
-    Encoder,
-    /// [`EmbeddingMap`], config section `[map]`.
-    Map,
-    /// [`Segmenter`], config section `[query.segmenter]`.
-    Segmenter,
-}
-
-impl StageKind {
-    /// Every stage, in pipeline order.
-    pub const ALL: [StageKind; 5] = [
-        StageKind::Tracker,
-        StageKind::Proposer,
-        StageKind::Encoder,
-        StageKind::Map,
-        StageKind::Segmenter,
-    ];
-
-    /// The config section that configures this stage.
-    pub fn section(self) -> &'static str {
-        match self {
-            StageKind::Tracker => "tracker",
-            StageKind::Proposer => "proposer",
-            StageKind::Encoder => "encoder",
-            StageKind::Map => "map",
-            StageKind::Segmenter => "query.segmenter",
-        }
-    }
-}
-
-impl fmt::Display for StageKind {
-    fn fmt(&self, f: &mut fmt::Formatter<'_>) -> fmt::Result {
-        f.write_str(match self {
-            StageKind::Tracker => "tracker",
-            StageKind::Proposer => "region proposer",
-            StageKind::Encoder => "encoder",
-            StageKind::Map => "map",
-            StageKind::Segmenter => "segmenter",
-        })
-    }
-}
 
 /// What the build step of an implementation may use besides its own parameters. It never holds a
 /// network client: weights are read from paths the config names.
@@ -362,21 +313,16 @@ pub fn parse_params<T: DeserializeOwned>(
     })
 }
 
-#[doc(hidden)]
-pub mod __private {
-    pub use inventory;
-}
-
 /// Registers a [`Tracker`]: `register_tracker!("name", "one-line description", build_fn);`
 /// where `build_fn: fn(&toml::Table, &BuildContext) -> Result<Box<dyn Tracker>>`.
 #[macro_export]
 macro_rules! register_tracker {
     ($name:expr, $description:expr, $build:expr) => {
-        $crate::registry::__private::inventory::submit! {
-            $crate::registry::Registration {
+        $crate::__private::inventory::submit! {
+            $crate::Registration {
                 name: $name,
                 description: $description,
-                builder: $crate::registry::Builder::Tracker($build),
+                builder: $crate::Builder::Tracker($build),
             }
         }
     };
@@ -386,11 +332,11 @@ macro_rules! register_tracker {
 #[macro_export]
 macro_rules! register_proposer {
     ($name:expr, $description:expr, $build:expr) => {
-        $crate::registry::__private::inventory::submit! {
-            $crate::registry::Registration {
+        $crate::__private::inventory::submit! {
+            $crate::Registration {
                 name: $name,
                 description: $description,
-                builder: $crate::registry::Builder::Proposer($build),
+                builder: $crate::Builder::Proposer($build),
             }
         }
     };
@@ -400,11 +346,11 @@ macro_rules! register_proposer {
 #[macro_export]
 macro_rules! register_encoder {
     ($name:expr, $description:expr, $build:expr) => {
-        $crate::registry::__private::inventory::submit! {
-            $crate::registry::Registration {
+        $crate::__private::inventory::submit! {
+            $crate::Registration {
                 name: $name,
                 description: $description,
-                builder: $crate::registry::Builder::Encoder($build),
+                builder: $crate::Builder::Encoder($build),
             }
         }
     };
@@ -414,11 +360,11 @@ macro_rules! register_encoder {
 #[macro_export]
 macro_rules! register_map {
     ($name:expr, $description:expr, $build:expr) => {
-        $crate::registry::__private::inventory::submit! {
-            $crate::registry::Registration {
+        $crate::__private::inventory::submit! {
+            $crate::Registration {
                 name: $name,
                 description: $description,
-                builder: $crate::registry::Builder::Map($build),
+                builder: $crate::Builder::Map($build),
             }
         }
     };
@@ -428,11 +374,11 @@ macro_rules! register_map {
 #[macro_export]
 macro_rules! register_segmenter {
     ($name:expr, $description:expr, $build:expr) => {
-        $crate::registry::__private::inventory::submit! {
-            $crate::registry::Registration {
+        $crate::__private::inventory::submit! {
+            $crate::Registration {
                 name: $name,
                 description: $description,
-                builder: $crate::registry::Builder::Segmenter($build),
+                builder: $crate::Builder::Segmenter($build),
             }
         }
     };
@@ -443,9 +389,9 @@ macro_rules! register_segmenter {
 #[macro_export]
 macro_rules! feature_hint {
     ($kind:ident, $name:expr, $feature:expr) => {
-        $crate::registry::__private::inventory::submit! {
-            $crate::registry::FeatureHint {
-                kind: $crate::registry::StageKind::$kind,
+        $crate::__private::inventory::submit! {
+            $crate::FeatureHint {
+                kind: $crate::StageKind::$kind,
                 name: $name,
                 feature: $feature,
             }

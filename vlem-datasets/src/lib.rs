@@ -23,7 +23,7 @@ use std::path::Path;
 use vlem_core::FrameSource;
 use vlem_core::config::{DatasetConfig, DatasetKind};
 
-pub mod calibration;
+mod calibration;
 mod depth_check;
 mod error;
 pub mod icl;

@@ -15,9 +15,8 @@
 
 use std::path::Path;
 
-use nalgebra::Matrix4;
+use vlem_core::Intrinsics;
 use vlem_core::config::DatasetConfig;
-use vlem_core::{Intrinsics, Pose};
 
 use crate::calibration::validated;
 use crate::error::{DatasetError, Result};
@@ -27,7 +26,7 @@ use crate::sequence::{
     reader_via_sequence, require_file,
 };
 use crate::text::read_text;
-use crate::trajectory::{matrix_rows_from_str, pose_from_matrix};
+use crate::trajectory::matrix_rows_from_str;
 
 /// Raw depth units per metre of ScanNet (millimetres).
 pub const SCANNET_DEPTH_SCALE: f64 = 1000.0;
@@ -150,22 +149,4 @@ pub fn depth_intrinsics_from_str(
         Intrinsics::new(width, height, k[0][0], k[1][1], k[0][2], k[1][2]),
         path,
     )
-}
-
-/// Reads one ScanNet pose file (4x4 camera-to-world, rows) for frame `frame`.
-pub(crate) fn read_pose(path: &Path, frame: usize) -> Result<Pose> {
-    pose_from_str(&read_text(path)?, path, frame)
-}
-
-/// Parses the text of one ScanNet pose file (`pose/N.txt`: a 4x4 camera-to-world matrix, one row
-/// per line) as the pose of frame `frame`; `path` is the file it came from, as errors name it.
-///
-/// # Errors
-/// [`DatasetError::Parse`] for a malformed matrix, [`DatasetError::NonFinitePose`] for the `-inf`
-/// poses ScanNet writes for lost frames, [`DatasetError::NotRotation`] for a matrix whose rotation
-/// block is not a rotation.
-pub fn pose_from_str(text: &str, path: &Path, frame: usize) -> Result<Pose> {
-    let rows = matrix_rows_from_str(text, path, 4)?;
-    let values: Vec<f64> = rows.into_iter().flatten().collect();
-    pose_from_matrix(&Matrix4::from_row_slice(&values), path, frame)
 }

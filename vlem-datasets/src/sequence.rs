@@ -346,7 +346,7 @@ impl Sequence {
         let pose = match &entry.pose {
             PoseRef::None => None,
             PoseRef::Known(pose) => Some(*pose),
-            PoseRef::File(path) => Some(crate::scannet::read_pose(path, index)?),
+            PoseRef::File(path) => Some(crate::trajectory::read_scannet_pose(path, index)?),
         };
         // Layouts without timestamps use the underlying frame index, so that a strided run still
         // reports where in the recording each frame is.

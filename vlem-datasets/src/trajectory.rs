@@ -1,11 +1,14 @@
-//! Trajectory files: Redwood `.log` (read) and TUM (read and write).
+//! Trajectory files: Redwood `.log` (read), TUM (read and write), and ScanNet's one pose file per
+//! frame (read).
 //!
-//! Both hold camera-to-world poses, the convention of [`vlem_core::Pose`].
+//! All hold camera-to-world poses, the convention of [`vlem_core::Pose`].
 //!
 //! - `.log` (Redwood / Open3D / ICL-NUIM augmented): per frame a metadata line `i j k`, then the
 //!   four rows of the 4x4 camera-to-world matrix.
 //! - TUM: one line per pose, `t tx ty tz qx qy qz qw` (scalar part of the quaternion last),
 //!   `#` comments allowed.
+//! - ScanNet `pose/N.txt`: the 4x4 camera-to-world matrix of one frame, one row per line; read with
+//!   the frame, so that one lost frame does not make the whole sequence unusable.
 
 use std::io::Write;
 use std::path::{Path, PathBuf};
@@ -193,6 +196,24 @@ fn write_synced(path: &Path, bytes: &[u8]) -> Result<()> {
     let mut file = std::fs::File::create(path).map_err(io)?;
     file.write_all(bytes).map_err(io)?;
     file.sync_all().map_err(io)
+}
+
+/// Reads one ScanNet pose file (4x4 camera-to-world, rows) for frame `frame`.
+pub(crate) fn read_scannet_pose(path: &Path, frame: usize) -> Result<Pose> {
+    scannet_pose_from_str(&read_text(path)?, path, frame)
+}
+
+/// Parses the text of one ScanNet pose file (`pose/N.txt`: a 4x4 camera-to-world matrix, one row
+/// per line) as the pose of frame `frame`; `path` is the file it came from, as errors name it.
+///
+/// # Errors
+/// [`DatasetError::Parse`] for a malformed matrix, [`DatasetError::NonFinitePose`] for the `-inf`
+/// poses ScanNet writes for lost frames, [`DatasetError::NotRotation`] for a matrix whose rotation
+/// block is not a rotation.
+pub fn scannet_pose_from_str(text: &str, path: &Path, frame: usize) -> Result<Pose> {
+    let rows = matrix_rows_from_str(text, path, 4)?;
+    let values: Vec<f64> = rows.into_iter().flatten().collect();
+    pose_from_matrix(&Matrix4::from_row_slice(&values), path, frame)
 }
 
 /// A camera-to-world pose from a 4x4 matrix read from `path` (frame `frame`): refused when not

@@ -10,9 +10,8 @@
 use std::path::Path;
 
 use nalgebra::Vector3;
-use vlem_core::FrameSource;
-use vlem_core::Intrinsics;
-use vlem_core::config::{Config, DatasetConfig, DatasetKind, SyntheticConfig, SyntheticNoise};
+use vlem_core::config::{DatasetConfig, DatasetKind, SyntheticConfig, SyntheticNoise};
+use vlem_core::{Config, FrameSource, Intrinsics};
 use vlem_datasets::synthetic::{
     SYNTHETIC_FRAME_RATE, SYNTHETIC_LABELS, SyntheticView, look_along, write_to_disk,
 };

@@ -6,7 +6,7 @@
 //!   (IoU averaged over similarity thresholds) and RayFronts' (argmax over class prompts).
 //! - [`error`]: the crate's one error type, [`EvalError`].
 
-pub mod error;
+mod error;
 pub mod semseg;
 pub mod trajectory;
 

@@ -2,10 +2,12 @@
 //!
 //! Each map is behind a cargo feature named after it (`point-cloud`, `voxel`, `segment`).
 //! Everything registers itself with the vlem registry; binaries reference this crate so that the
-//! registrations are linked.
+//! registrations are linked. The crate declares the cargo feature of each map with
+//! [`vlem_core::feature_hint!`] whether or not it is compiled in, so that asking a binary built
+//! without it for that map says which feature to enable.
 
 mod common;
-pub mod error;
+mod error;
 #[cfg(feature = "point-cloud")]
 pub mod point_cloud;
 #[cfg(feature = "segment")]
@@ -15,3 +17,7 @@ pub mod storage;
 pub mod voxel;
 
 pub use error::MapError;
+
+vlem_core::feature_hint!(Map, "point-cloud", "point-cloud");
+vlem_core::feature_hint!(Map, "voxel", "voxel");
+vlem_core::feature_hint!(Map, "segment", "segment");

@@ -10,9 +10,14 @@
 //! - [`map_properties!`]: property tests (arbitrary frame sequences) for [`vlem_core::EmbeddingMap`]
 //!   implementations.
 //! - [`region_proposer_conformance!`]: for [`vlem_core::RegionProposer`] implementations.
+//! - [`segmenter_conformance!`]: for [`vlem_core::Segmenter`] implementations.
+//! - [`tracker_conformance!`]: for [`vlem_core::Tracker`] implementations, on frames the
+//!   implementing crate supplies.
 
 pub mod encoder;
 pub mod images;
 pub mod map;
 pub mod properties;
 pub mod proposer;
+pub mod segmenter;
+pub mod tracker;

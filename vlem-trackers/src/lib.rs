@@ -7,7 +7,7 @@
 //!   ray-cast from a TSDF voxel-block map ([`tsdf`]) of everything tracked so far, which also
 //!   yields the dense colour model (a marching-cubes mesh).
 
-pub mod error;
+mod error;
 pub mod frame_to_model;
 pub mod ground_truth;
 pub mod odometry;

@@ -46,9 +46,12 @@
 //! use vlem_plugin_colour_names as _;
 //! ```
 //!
-//! Heavy backends also go behind a cargo feature of the `vlem` package and declare it with
-//! `vlem_core::feature_hint!`, so that asking for them in a binary built without it says which
-//! feature to enable.
+//! An optional encoder goes behind a cargo feature of the `vlem` package, and its crate declares
+//! that feature with `vlem_core::feature_hint!` whether or not the encoder is compiled in, so that
+//! asking for it in a binary built without it says which feature to enable. The hint only reaches
+//! the registry when the crate is linked, so the crate stays linked and the feature turns on what
+//! it registers: here `vlem`'s `colour-names` feature turns on this crate's `colour-names`
+//! feature, which gates the `register_encoder!` line.
 //!
 //! # The recipe in one piece
 //!
@@ -477,11 +480,16 @@ pub fn build(params: &toml::Table, _ctx: &BuildContext) -> vlem_core::Result<Box
     Ok(Box::new(ColourNamesEncoder::new(config)?))
 }
 
+// Registered only with this crate's `colour-names` feature (the `vlem` feature of the same name
+// turns it on); the hint is declared either way, so that a binary built without the feature
+// names it when a config asks for `kind = "colour-names"`.
+#[cfg(feature = "colour-names")]
 vlem_core::register_encoder!(
     NAME,
     "basic colour terms in CIELAB: a weight-free reference encoder for demos and tests",
     build
 );
+vlem_core::feature_hint!(Encoder, NAME, "colour-names");
 
 #[cfg(test)]
 mod tests {

@@ -1,7 +1,7 @@
 //! The stage traits of the pipeline, one per file.
 //!
 //! All are dyn-compatible and `Send + Sync` (sources only `Send`): the pipeline holds `Box<dyn _>`
-//! built by the [registry](crate::registry) from the TOML config, and moves them between threads.
+//! built by the [registry](crate::Registry) from the TOML config, and moves them between threads.
 
 pub mod embedding_map;
 pub mod encoder;
