@@ -18,7 +18,7 @@ pub use embeddings::{EmbeddingLayout, NO_SEGMENT, PixelEmbeddings};
 pub use error::{CoreError, Result};
 pub use mapfile::{MapMetadata, MapSnapshot, read_map_file, write_map_file};
 pub use registry::{BuildContext, Registry, StageKind, parse_params};
-pub use traits::embedding_map::{EmbeddingMap, IntegrationStats, Observation};
+pub use traits::embedding_map::{EmbeddingMap, IntegrationStats, MapBudget, Observation};
 pub use traits::encoder::Encoder;
 pub use traits::frame_source::FrameSource;
 pub use traits::observer::{NoObserver, RunObserver};

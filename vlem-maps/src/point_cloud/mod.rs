@@ -20,7 +20,7 @@ use kiddo::{ImmutableKdTree, SquaredEuclidean};
 use rayon::prelude::*;
 use vlem_core::embeddings::normalise;
 use vlem_core::{
-    BuildContext, ColouredMesh, CoreError, EmbeddingMap, IntegrationStats, MapMetadata,
+    BuildContext, ColouredMesh, CoreError, EmbeddingMap, IntegrationStats, MapBudget, MapMetadata,
     MapSnapshot, Observation, RigidF32, StageKind, parse_params,
 };
 
@@ -532,6 +532,13 @@ impl EmbeddingMap for PointCloudMap {
 
     fn len(&self) -> usize {
         self.positions.len()
+    }
+
+    fn budget(&self) -> Option<MapBudget> {
+        Some(MapBudget {
+            parameter: "max_points",
+            elements: self.config.max_points,
+        })
     }
 
     fn memory_bytes(&self) -> usize {

@@ -41,7 +41,7 @@ use std::collections::{BTreeMap, HashMap};
 
 use vlem_core::embeddings::{EmbeddingLayout, normalise};
 use vlem_core::{
-    BuildContext, ColouredMesh, CoreError, EmbeddingMap, IntegrationStats, MapMetadata,
+    BuildContext, ColouredMesh, CoreError, EmbeddingMap, IntegrationStats, MapBudget, MapMetadata,
     MapSnapshot, Observation, PixelEmbeddings, StageKind, parse_params,
 };
 
@@ -583,6 +583,13 @@ impl EmbeddingMap for SegmentMap {
 
     fn len(&self) -> usize {
         self.owner.len()
+    }
+
+    fn budget(&self) -> Option<MapBudget> {
+        Some(MapBudget {
+            parameter: "max_points",
+            elements: self.config.max_points,
+        })
     }
 
     fn memory_bytes(&self) -> usize {

@@ -28,7 +28,7 @@ use std::hash::{BuildHasherDefault, Hash, Hasher};
 use rayon::prelude::*;
 use vlem_core::embeddings::normalise;
 use vlem_core::{
-    BuildContext, ColouredMesh, CoreError, EmbeddingMap, IntegrationStats, MapMetadata,
+    BuildContext, ColouredMesh, CoreError, EmbeddingMap, IntegrationStats, MapBudget, MapMetadata,
     MapSnapshot, Observation, PixelEmbeddings, RgbImage, StageKind, parse_params,
 };
 
@@ -580,6 +580,13 @@ impl EmbeddingMap for VoxelMap {
 
     fn len(&self) -> usize {
         self.keys.len()
+    }
+
+    fn budget(&self) -> Option<MapBudget> {
+        Some(MapBudget {
+            parameter: "max_voxels",
+            elements: self.config.max_voxels,
+        })
     }
 
     fn memory_bytes(&self) -> usize {
