@@ -140,36 +140,35 @@ impl FrameSource for Window<'_> {
     }
 }
 
-/// The map's budget: the parameter that caps its element count, which the soak config must set.
-fn map_budget(config: &Config, path: &Path) -> Result<(String, usize)> {
-    let Some(map) = &config.map else {
+/// The map's budget ([`EmbeddingMap::budget`]): the parameter that caps its element count,
+/// which the soak config must set.
+fn map_budget(
+    config: &Config,
+    map: Option<&dyn EmbeddingMap>,
+    path: &Path,
+) -> Result<(String, usize)> {
+    let (Some(map_config), Some(map)) = (&config.map, map) else {
         bail!(
             "{}: vlem soak needs a [map] (the point of the soak is a map held at its budget)",
             path.display()
         );
     };
-    let key = match map.kind.as_str() {
-        "point-cloud" | "segment" => "max_points",
-        "voxel" => "max_voxels",
-        other => bail!(
-            "{}: vlem soak knows the budget of the point-cloud, voxel and segment maps, not of \
-             `{other}`",
-            path.display()
-        ),
+    let Some(budget) = map.budget() else {
+        bail!(
+            "{}: vlem soak checks the map against its budget, and map `{}` has none",
+            path.display(),
+            map.name()
+        );
     };
-    let budget = map
-        .params
-        .get(key)
-        .and_then(toml::Value::as_integer)
-        .and_then(|b| usize::try_from(b).ok())
-        .with_context(|| {
-            format!(
-                "{}: vlem soak checks the map against its budget: set [map] {key} (a small one, so \
-                 that the map reaches it early)",
-                path.display()
-            )
-        })?;
-    Ok((key.to_owned(), budget))
+    let key = budget.parameter;
+    if !map_config.params.contains_key(key) {
+        bail!(
+            "{}: vlem soak checks the map against its budget: set [map] {key} (a small one, so \
+             that the map reaches it early)",
+            path.display()
+        );
+    }
+    Ok((key.to_owned(), budget.elements))
 }
 
 /// Runs the soak of `args`.
@@ -195,7 +194,6 @@ pub fn execute(args: &SoakArgs) -> Result<()> {
             path.display()
         );
     }
-    let (budget_key, budget) = map_budget(&config, path)?;
     let mut synthetic = config.dataset.synthetic.clone();
     let frames = args
         .frames
@@ -207,6 +205,7 @@ pub fn execute(args: &SoakArgs) -> Result<()> {
     config.dataset.synthetic = synthetic;
 
     let mut pipeline = Pipeline::from_config(&config, &ctx)?;
+    let (budget_key, budget) = map_budget(&config, pipeline.map().as_deref(), path)?;
     let mut source = vlem_datasets::open(&config.dataset, &ctx.config_dir)?;
     std::fs::create_dir_all(&args.out)
         .with_context(|| format!("cannot create {}", args.out.display()))?;

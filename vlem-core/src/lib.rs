@@ -23,7 +23,7 @@ pub use registry::{
     BuildContext, BuildFn, Builder, FeatureHint, Registration, Registry, load_config, parse_params,
 };
 pub use stage::StageKind;
-pub use traits::embedding_map::{EmbeddingMap, IntegrationStats, Observation};
+pub use traits::embedding_map::{EmbeddingMap, IntegrationStats, MapBudget, Observation};
 pub use traits::encoder::Encoder;
 pub use traits::frame_source::FrameSource;
 pub use traits::observer::{NoObserver, RunObserver};

@@ -1,13 +1,15 @@
 //! vlem-maps: embedding maps (storage and integration; the query path is `vlem-query`).
 //!
-//! Each map is behind a cargo feature named after it (`point-cloud`, `voxel`, `segment`).
+//! Each map is behind a cargo feature named after it (`point-cloud`, `voxel`, `segment`) and is a
+//! folder module built from [`kit`] (the shared config block, the frame's pixels in world
+//! coordinates, input checks).
 //! Everything registers itself with the vlem registry; binaries reference this crate so that the
 //! registrations are linked. The crate declares the cargo feature of each map with
 //! [`vlem_core::feature_hint!`] whether or not it is compiled in, so that asking a binary built
 //! without it for that map says which feature to enable.
 
-mod common;
 mod error;
+pub mod kit;
 #[cfg(feature = "point-cloud")]
 pub mod point_cloud;
 #[cfg(feature = "segment")]

@@ -34,6 +34,18 @@ pub struct IntegrationStats {
     pub removed: usize,
 }
 
+/// The cap on a map's element count, and the `[map]` parameter that sets it.
+///
+/// A caller that holds a map to its budget (`vlem soak`, memory reports) asks the map for it
+/// instead of knowing which parameter each map kind reads.
+#[derive(Clone, Copy, Debug, PartialEq, Eq)]
+pub struct MapBudget {
+    /// The `[map]` parameter that sets the budget (`max_points`, `max_voxels`, ...).
+    pub parameter: &'static str,
+    /// The most elements ([`EmbeddingMap::len`]) the map holds after an integration.
+    pub elements: usize,
+}
+
 /// A map of 3D elements that carry embeddings, integrated frame by frame.
 pub trait EmbeddingMap: Send + Sync {
     /// The registered name.
@@ -58,6 +70,11 @@ pub trait EmbeddingMap: Send + Sync {
 
     /// Bytes of map storage (positions, colours, embeddings and indices), for memory reports.
     fn memory_bytes(&self) -> usize;
+
+    /// The map's element budget, `None` (the default) for a map without one.
+    fn budget(&self) -> Option<MapBudget> {
+        None
+    }
 
     /// The normalised cosine similarity `(e_text . e + 1) / 2` of every element, into `out`
     /// (resized to [`EmbeddingMap::len`]), in the order of [`EmbeddingMap::snapshot`].

@@ -1,5 +1,6 @@
 //! 3D ground truth from labelled RGB-D frames: every labelled pixel with a valid depth is
-//! back-projected with the frame's pose and the points are merged per voxel, keeping the majority
+//! back-projected with the frame's pose (by the maps' own [`FramePixels`], so the ground truth
+//! and the maps see the same points) and the points are merged per voxel, keeping the majority
 //! label.
 //!
 //! The same code serves every dataset that has label images (the synthetic scene, a folder with
@@ -10,7 +11,8 @@
 
 use rustc_hash::FxHashMap;
 use serde::Serialize;
-use vlem_core::{DepthImage, Frame, FrameSource, Intrinsics, Pose, RigidF32};
+use vlem_core::{DepthImage, Frame, FrameSource, Intrinsics, Pose};
+use vlem_maps::kit::FramePixels;
 
 use super::classes::LabelRemap;
 use crate::error::{EvalError, Result};
@@ -146,28 +148,20 @@ impl GroundTruthBuilder {
                 reason: "must be at least 1".into(),
             });
         }
-        let to_world = RigidF32::from_pose(pose);
-        let (fx, fy) = (intrinsics.fx as f32, intrinsics.fy as f32);
-        let (cx, cy) = (intrinsics.cx as f32, intrinsics.cy as f32);
+        let stride = u32::try_from(pixel_stride).unwrap_or(u32::MAX);
         let inv = 1.0 / self.voxel_size;
         let mut added = 0;
-        for v in (0..h).step_by(pixel_stride) {
-            for u in (0..w).step_by(pixel_stride) {
-                let Some(z) = depth.get(u, v) else {
-                    continue;
-                };
-                let label = labels[v as usize * w as usize + u as usize];
-                let camera = [(u as f32 - cx) * z / fx, (v as f32 - cy) * z / fy, z];
-                let p = to_world.apply(camera);
-                if !p.iter().all(|x| x.is_finite()) {
-                    continue;
-                }
-                self.voxels
-                    .entry(voxel_key(p, inv))
-                    .or_default()
-                    .add(p, label);
-                added += 1;
+        for pixel in FramePixels::of_depth(depth, intrinsics, pose, stride).iter() {
+            let label = labels[pixel.index as usize];
+            let p = pixel.world;
+            if !p.iter().all(|x| x.is_finite()) {
+                continue;
             }
+            self.voxels
+                .entry(voxel_key(p, inv))
+                .or_default()
+                .add(p, label);
+            added += 1;
         }
         self.pixels += added as u64;
         self.views += 1;

@@ -1,12 +1,12 @@
-//! Pieces every map shares: validating an observation, resolving the embedding dimension,
-//! and parameter errors.
+//! The checks every map makes: a parameter out of range, the embedding dimension against the
+//! encoder's, an observation's and a snapshot's embeddings against the map's dimension.
 
 use vlem_core::{CoreError, MapSnapshot, Observation, StageKind};
 
 use crate::error::MapError;
 
 /// The error for a map parameter out of its range, named for the pipeline.
-pub(crate) fn invalid_parameter(map: &str, name: &'static str, reason: &str) -> CoreError {
+pub fn invalid_parameter(map: &str, name: &'static str, reason: &str) -> CoreError {
     CoreError::stage(
         StageKind::Map,
         map,
@@ -19,7 +19,7 @@ pub(crate) fn invalid_parameter(map: &str, name: &'static str, reason: &str) -> 
 
 /// The map's embedding dimension: the configured `dim` if any (it must equal the encoder's), else
 /// the encoder's, else 0 (geometry only).
-pub(crate) fn resolve_dim(
+pub fn resolve_dim(
     map: &str,
     configured: Option<usize>,
     encoder: Option<usize>,
@@ -39,7 +39,7 @@ pub(crate) fn resolve_dim(
 }
 
 /// Checks that an observation's embeddings fit a map of dimension `dim`.
-pub(crate) fn check_observation(dim: usize, obs: &Observation<'_>) -> Result<(), MapError> {
+pub fn check_observation(dim: usize, obs: &Observation<'_>) -> Result<(), MapError> {
     let frame = obs.frame;
     match (dim, obs.embeddings) {
         (0, None) => Ok(()),
@@ -61,7 +61,7 @@ pub(crate) fn check_observation(dim: usize, obs: &Observation<'_>) -> Result<(),
 }
 
 /// Checks that a snapshot is consistent and has the map's embedding dimension (before `restore`).
-pub(crate) fn check_snapshot(dim: usize, snapshot: &MapSnapshot) -> Result<(), CoreError> {
+pub fn check_snapshot(dim: usize, snapshot: &MapSnapshot) -> Result<(), CoreError> {
     snapshot.validate()?;
     if snapshot.dim != dim {
         return Err(CoreError::DimensionMismatch {
@@ -71,35 +71,4 @@ pub(crate) fn check_snapshot(dim: usize, snapshot: &MapSnapshot) -> Result<(), C
         });
     }
     Ok(())
-}
-
-/// Buckets of a `std` hash table whose full capacity (no tombstones) is `capacity`: the table
-/// keeps 1/8 of its buckets free (one bucket below 8 buckets), and bucket counts are powers of two.
-/// Each bucket holds one entry and one control byte.
-#[cfg_attr(
-    not(any(feature = "voxel", feature = "segment")),
-    allow(dead_code, reason = "only the voxel and segment maps have hash tables")
-)]
-pub(crate) fn hash_buckets(capacity: usize) -> usize {
-    match capacity {
-        0 => 0,
-        c if c < 8 => (c + 1).next_power_of_two(),
-        c => (c / 7 * 8).next_power_of_two(),
-    }
-}
-
-/// A lower bound on the bytes of a `std` B-tree map of `len` entries of `entry` (key plus value)
-/// bytes: nodes of up to 11 entries after a 12-byte header (parent pointer, index, length), so
-/// at least `len / 11` of them; when there are several, one is internal, with 12 edge pointers
-/// besides. Nodes are often only half full, so the real figure is up to about twice this.
-#[cfg_attr(
-    not(feature = "segment"),
-    allow(dead_code, reason = "only the segment map has B-trees")
-)]
-pub(crate) fn btree_bytes(len: usize, entry: usize) -> usize {
-    const CAPACITY: usize = 11;
-    let nodes = len.div_ceil(CAPACITY);
-    let leaf = (12 + CAPACITY * entry).next_multiple_of(8);
-    let edges = if nodes > 1 { (CAPACITY + 1) * 8 } else { 0 };
-    nodes * leaf + edges
 }

@@ -2,22 +2,23 @@
 //!
 //! The map is a set of 3D segments. Each owns cells of a coarse grid (`point_spacing`); a cell has
 //! exactly one owner. Per frame:
-//! 1. **2D segments.** Every valid pixel (finite positive depth, at most `max_depth`, with an
-//!    embedding) is back-projected into the map frame and quantised to its grid cell. Pixels are
-//!    grouped into 2D segments: by the encoder's segment id in the segment layout; by the patch
-//!    whose centre is nearest (the patch containing the pixel) in the patch-grid layout, which has
-//!    no segments of its own; and by 32x32-pixel tiles for a geometry-only map. A 2D segment's
-//!    embedding is its table row, or the normalised mean of its pixels' embeddings for patches.
-//! 2. **Association.** `overlap(s, S)` is the number of cells of the 2D segment `s` owned by the 3D
-//!    segment `S`, and the score is `overlap / min(|s|, |S ∩ frame|)`, where `S ∩ frame` are the
-//!    cells of `S` this frame observed (so occluded and out-of-view parts of `S` do not count
-//!    against it, and a segment seen in part again still matches). Pairs scoring below
-//!    `min_overlap` are dropped; the rest are assigned one-to-one by the Hungarian algorithm,
-//!    maximising the total score. A matched 3D segment fuses the observation into its embedding
-//!    with `e := (1 - w) e_obs + w e`, renormalised (w = `map_weight`), and takes the unowned
-//!    cells of the 2D segment (cells of another segment stay with their owner). An unmatched 2D
-//!    segment that would own at least `min_cells` unowned cells becomes a new 3D segment.
-//!    Observed cells fuse their colour with the same weights.
+//! 1. **2D segments.** Every valid pixel at the `pixel_stride` (finite positive depth, at most
+//!    `max_depth`, with an embedding) is back-projected into the map frame and quantised to its
+//!    grid cell. Pixels are grouped into 2D segments: by the encoder's segment id in the segment
+//!    layout; by the patch whose centre is nearest (the patch containing the pixel) in the
+//!    patch-grid layout, which has no segments of its own; and by 32x32-pixel tiles for a
+//!    geometry-only map. A 2D segment's embedding is its table row, or the normalised mean of its
+//!    pixels' embeddings for patches.
+//! 2. **Association** (`association.rs`). `overlap(s, S)` is the number of cells of the 2D
+//!    segment `s` owned by the 3D segment `S`, and the score is `overlap / min(|s|, |S ∩ frame|)`,
+//!    where `S ∩ frame` are the cells of `S` this frame observed (so occluded and out-of-view
+//!    parts of `S` do not count against it, and a segment seen in part again still matches).
+//!    Pairs scoring below `min_overlap` are dropped; the rest are assigned one-to-one by the
+//!    Hungarian algorithm (`hungarian.rs`), maximising the total score. A matched 3D segment
+//!    fuses the observation into its embedding with `e := (1 - w) e_obs + w e`, renormalised
+//!    (w = `map_weight`), and takes the unowned cells of the 2D segment (cells of another segment
+//!    stay with their owner). An unmatched 2D segment that would own at least `min_cells` unowned
+//!    cells becomes a new 3D segment. Observed cells fuse their colour with the same weights.
 //! 3. **Budget.** The map's points are its cells; while there are more than `max_points`, the
 //!    segments observed least recently (then the smallest, then the oldest) are removed. Segments
 //!    seen in the current frame are never evicted: if they alone exceed the budget, the grid is
@@ -33,20 +34,22 @@
 //! snapshot into segments at every change of embedding or break in key order, so a map's own
 //! snapshot round-trips in the same order.
 
+mod association;
+mod hungarian;
+
 use std::collections::{BTreeMap, HashMap};
 
-use serde::Deserialize;
 use vlem_core::embeddings::{EmbeddingLayout, normalise};
 use vlem_core::{
-    BuildContext, ColouredMesh, CoreError, EmbeddingMap, IntegrationStats, MapMetadata,
-    MapSnapshot, Observation, PixelEmbeddings, RigidF32, StageKind, parse_params,
+    BuildContext, ColouredMesh, CoreError, EmbeddingMap, IntegrationStats, MapBudget, MapMetadata,
+    MapSnapshot, Observation, PixelEmbeddings, StageKind, parse_params,
 };
 
-use crate::common::{
-    btree_bytes, check_observation, check_snapshot, hash_buckets, invalid_parameter, resolve_dim,
-};
+pub use self::hungarian::hungarian;
 use crate::error::MapError;
-use crate::storage::{EmbeddingStore, Precision, fuse_into};
+use crate::kit::memory::{btree_bytes, hash_buckets};
+use crate::kit::{FramePixels, check_observation, check_snapshot, invalid_parameter};
+use crate::storage::{EmbeddingStore, fuse_into};
 
 /// The registered name.
 pub const NAME: &str = "segment";
@@ -54,68 +57,20 @@ pub const NAME: &str = "segment";
 /// Tile size (pixels) of the 2D segments of a geometry-only map, which has no segmentation.
 const GEOMETRY_TILE: u32 = 32;
 
-/// `[map] kind = "segment"` parameters.
-#[derive(Clone, Debug, Deserialize, PartialEq)]
-#[serde(deny_unknown_fields)]
-pub struct SegmentConfig {
-    /// Embedding dimension; defaults to the encoder's (0 without an encoder). If set, it must equal
-    /// the encoder's.
-    #[serde(default)]
-    pub dim: Option<usize>,
-    /// Budget on the number of cells (the map's points); default 1,000,000.
-    #[serde(default = "default_max_points")]
-    pub max_points: usize,
-    /// Grid cell size in metres; default 0.02.
-    #[serde(default = "default_point_spacing")]
-    pub point_spacing: f32,
-    /// Minimum overlap score for a 2D segment to join a 3D segment, in (0, 1]; default 0.25.
-    #[serde(default = "default_min_overlap")]
-    pub min_overlap: f32,
-    /// Minimum number of new cells for an unmatched 2D segment to start a 3D segment; default 10.
-    #[serde(default = "default_min_cells")]
-    pub min_cells: usize,
-    /// Weight `w` of the map embedding in the fusion; default 0.5 (the paper's value).
-    #[serde(default = "default_map_weight")]
-    pub map_weight: f32,
-    /// Depth beyond this (metres) is not integrated; default 10.
-    #[serde(default = "default_max_depth")]
-    pub max_depth: f32,
-    /// Embedding storage, `"f32"` (default) or `"f16"` (half the bytes, same query ranking).
-    #[serde(default)]
-    pub precision: Precision,
-}
-
-fn default_max_points() -> usize {
-    1_000_000
-}
-fn default_point_spacing() -> f32 {
-    0.02
-}
-fn default_min_overlap() -> f32 {
-    0.25
-}
-fn default_min_cells() -> usize {
-    10
-}
-fn default_map_weight() -> f32 {
-    0.5
-}
-fn default_max_depth() -> f32 {
-    10.0
-}
-
-impl Default for SegmentConfig {
-    fn default() -> Self {
-        Self {
-            dim: None,
-            max_points: default_max_points(),
-            point_spacing: default_point_spacing(),
-            min_overlap: default_min_overlap(),
-            min_cells: default_min_cells(),
-            map_weight: default_map_weight(),
-            max_depth: default_max_depth(),
-            precision: Precision::default(),
-        }
+crate::map_config! {
+    /// `[map] kind = "segment"` parameters.
+    pub struct SegmentConfig {
+        /// Budget on the number of cells (the map's points); default 1,000,000.
+        pub max_points: usize = 1_000_000,
+        /// Grid cell size in metres; default 0.02.
+        pub point_spacing: f32 = 0.02,
+        /// Minimum overlap score for a 2D segment to join a 3D segment, in (0, 1]; default 0.25.
+        pub min_overlap: f32 = 0.25,
+        /// Minimum number of new cells for an unmatched 2D segment to start a 3D segment; default
+        /// 10.
+        pub min_cells: usize = 10,
+        /// Weight `w` of the map embedding in the fusion; default 0.5 (the paper's value).
+        pub map_weight: f32 = 0.5,
     }
 }
 
@@ -145,10 +100,7 @@ impl SegmentConfig {
         if !(0.0..=1.0).contains(&self.map_weight) {
             return Err(invalid("map_weight", "must lie in [0, 1]"));
         }
-        if !(self.max_depth.is_finite() && self.max_depth > 0.0) {
-            return Err(invalid("max_depth", "must be a positive number of metres"));
-        }
-        let dim = resolve_dim(NAME, self.dim, encoder_dim)?;
+        let dim = self.common().validate(NAME, encoder_dim)?;
         Ok(SegmentMap::new(self.clone(), dim))
     }
 }
@@ -285,68 +237,55 @@ impl SegmentMap {
     /// Back-projects, quantises and groups the valid pixels into 2D segments.
     fn observe(&self, obs: &Observation<'_>) -> Observed {
         let frame = obs.frame;
-        let k = &frame.intrinsics;
-        let (w, h) = (frame.depth.width(), frame.depth.height());
-        let to_map = RigidF32::from_pose(obs.pose);
-        let (fx, fy, cx, cy) = (k.fx as f32, k.fy as f32, k.cx as f32, k.cy as f32);
-        let depth = frame.depth.as_raw();
+        let w = frame.depth.width();
         let dim = self.dim;
         let mut cells: HashMap<CellKey, ([u32; 3], u32)> = HashMap::new();
         // BTreeMap: 2D segments in label order, so integration is deterministic.
         let mut groups: BTreeMap<u32, Accumulator> = BTreeMap::new();
         let mut scratch = vec![0.0f32; dim];
         let mut pixels = 0;
-        for v in 0..h {
-            for u in 0..w {
-                let pixel = (v * w + u) as usize;
-                let Some(z) = vlem_core::types::valid_depth(depth[pixel]) else {
-                    continue;
-                };
-                if z > self.config.max_depth {
-                    continue;
-                }
-                let label = match obs.embeddings {
-                    Some(e) => match pixel_label(e, u, v) {
-                        Some(label) => label,
-                        None => continue,
-                    },
-                    None => (v / GEOMETRY_TILE) * w.div_ceil(GEOMETRY_TILE) + u / GEOMETRY_TILE,
-                };
-                let acc = groups.entry(label).or_default();
-                if let Some(e) = obs.embeddings {
-                    match e.layout() {
-                        EmbeddingLayout::Segments { .. } => {
-                            if acc.embedding.is_empty()
-                                && let Some(row) = e.segment_row(u, v)
-                            {
-                                acc.embedding.extend_from_slice(row);
-                            }
-                        }
-                        EmbeddingLayout::PatchGrid { .. } => {
-                            if !e.embedding_at(u, v, &mut scratch) {
-                                continue;
-                            }
-                            if acc.embedding.is_empty() {
-                                acc.embedding.resize(dim, 0.0);
-                            }
-                            acc.embedding
-                                .iter_mut()
-                                .zip(&scratch)
-                                .for_each(|(a, b)| *a += b);
+        for pixel in FramePixels::new(obs, &self.config.common()).iter() {
+            let (u, v) = (pixel.u, pixel.v);
+            let label = match obs.embeddings {
+                Some(e) => match pixel_label(e, u, v) {
+                    Some(label) => label,
+                    None => continue,
+                },
+                None => (v / GEOMETRY_TILE) * w.div_ceil(GEOMETRY_TILE) + u / GEOMETRY_TILE,
+            };
+            let acc = groups.entry(label).or_default();
+            if let Some(e) = obs.embeddings {
+                match e.layout() {
+                    EmbeddingLayout::Segments { .. } => {
+                        if acc.embedding.is_empty()
+                            && let Some(row) = e.segment_row(u, v)
+                        {
+                            acc.embedding.extend_from_slice(row);
                         }
                     }
+                    EmbeddingLayout::PatchGrid { .. } => {
+                        if !e.embedding_at(u, v, &mut scratch) {
+                            continue;
+                        }
+                        if acc.embedding.is_empty() {
+                            acc.embedding.resize(dim, 0.0);
+                        }
+                        acc.embedding
+                            .iter_mut()
+                            .zip(&scratch)
+                            .for_each(|(a, b)| *a += b);
+                    }
                 }
-                let p = [(u as f32 - cx) * z / fx, (v as f32 - cy) * z / fy, z];
-                let key = cell_key(to_map.apply(p), self.spacing);
-                acc.cells.push(key);
-                let c = frame.colour.at_index(pixel);
-                let entry = cells.entry(key).or_insert(([0; 3], 0));
-                for (s, x) in entry.0.iter_mut().zip(c) {
-                    *s += u32::from(x);
-                }
-                entry.1 += 1;
-                pixels += 1;
             }
+            let key = cell_key(pixel.world, self.spacing);
+            acc.cells.push(key);
+            let c = pixel.colour(&frame.colour);
+            let entry = cells.entry(key).or_insert(([0; 3], 0));
+            for (s, x) in entry.0.iter_mut().zip(c) {
+                *s += u32::from(x);
+            }
+            entry.1 += 1;
+            pixels += 1;
         }
         let segments = groups
             .into_values()
@@ -368,68 +307,6 @@ impl SegmentMap {
             segments,
             pixels,
         }
-    }
-
-    /// For every 2D segment, the 3D segment it is matched with.
-    fn associate(&self, observed: &Observed) -> Vec<Option<u64>> {
-        // Cells of each 3D segment that this frame observed.
-        let mut in_frame: HashMap<u64, usize> = HashMap::new();
-        for key in observed.cells.keys() {
-            if let Some(&id) = self.owner.get(key) {
-                *in_frame.entry(id).or_default() += 1;
-            }
-        }
-        let mut rows = Vec::new();
-        let mut overlaps: Vec<Vec<(u64, usize)>> = Vec::new();
-        let mut cols: Vec<u64> = Vec::new();
-        for (i, s) in observed.segments.iter().enumerate() {
-            let mut counts: BTreeMap<u64, usize> = BTreeMap::new();
-            for key in &s.cells {
-                if let Some(&id) = self.owner.get(key) {
-                    *counts.entry(id).or_default() += 1;
-                }
-            }
-            if !counts.is_empty() {
-                cols.extend(counts.keys());
-                rows.push(i);
-                overlaps.push(counts.into_iter().collect());
-            }
-        }
-        let mut matches = vec![None; observed.segments.len()];
-        if rows.is_empty() {
-            return matches;
-        }
-        cols.sort_unstable();
-        cols.dedup();
-        let min_overlap = f64::from(self.config.min_overlap);
-        let mut cost = vec![0.0f64; rows.len() * cols.len()];
-        let mut score = vec![0.0f64; rows.len() * cols.len()];
-        for (r, (&i, counts)) in rows.iter().zip(&overlaps).enumerate() {
-            let size = observed.segments[i].cells.len();
-            for &(id, overlap) in counts {
-                let Ok(c) = cols.binary_search(&id) else {
-                    continue;
-                };
-                let seen = in_frame.get(&id).copied().unwrap_or(overlap);
-                let s = overlap as f64 / size.min(seen).max(1) as f64;
-                score[r * cols.len() + c] = s;
-                // Pairs below the threshold are no edge, so they never displace a valid pair.
-                if s >= min_overlap {
-                    cost[r * cols.len() + c] = -s;
-                }
-            }
-        }
-        for (r, c) in hungarian(&cost, rows.len(), cols.len())
-            .into_iter()
-            .enumerate()
-        {
-            if let Some(c) = c
-                && score[r * cols.len() + c] >= min_overlap
-            {
-                matches[rows[r]] = Some(cols[c]);
-            }
-        }
-        matches
     }
 
     /// Adds `segment` as a new 3D segment; returns its id.
@@ -599,86 +476,6 @@ fn pixel_label(e: &PixelEmbeddings, u: u32, v: u32) -> Option<u32> {
     }
 }
 
-/// Minimum-cost assignment on a dense `rows x cols` cost matrix (row-major) by the Hungarian
-/// (Kuhn–Munkres) algorithm with potentials, O(n² m) for n = min, m = max of the two sizes.
-/// Returns the column assigned to each row; with more rows than columns some rows get `None`.
-pub fn hungarian(cost: &[f64], rows: usize, cols: usize) -> Vec<Option<usize>> {
-    if rows == 0 || cols == 0 || cost.len() != rows * cols {
-        return vec![None; rows];
-    }
-    if rows > cols {
-        // Solve the transpose (the algorithm needs rows <= columns) and invert the assignment.
-        let transposed: Vec<f64> = (0..cols)
-            .flat_map(|c| (0..rows).map(move |r| cost[r * cols + c]))
-            .collect();
-        let mut out = vec![None; rows];
-        for (c, r) in hungarian(&transposed, cols, rows).into_iter().enumerate() {
-            if let Some(r) = r {
-                out[r] = Some(c);
-            }
-        }
-        return out;
-    }
-    let (n, m) = (rows, cols);
-    let a = |i: usize, j: usize| cost[(i - 1) * m + (j - 1)];
-    // 1-based with a virtual column 0, as in the classic formulation.
-    let (mut u, mut v) = (vec![0.0f64; n + 1], vec![0.0f64; m + 1]);
-    let (mut p, mut way) = (vec![0usize; m + 1], vec![0usize; m + 1]);
-    for i in 1..=n {
-        p[0] = i;
-        let mut j0 = 0;
-        let mut minv = vec![f64::INFINITY; m + 1];
-        let mut used = vec![false; m + 1];
-        loop {
-            used[j0] = true;
-            let i0 = p[j0];
-            let mut delta = f64::INFINITY;
-            let mut j1 = 0;
-            for j in 1..=m {
-                if !used[j] {
-                    let cur = a(i0, j) - u[i0] - v[j];
-                    if cur < minv[j] {
-                        minv[j] = cur;
-                        way[j] = j0;
-                    }
-                    if minv[j] < delta {
-                        delta = minv[j];
-                        j1 = j;
-                    }
-                }
-            }
-            if j1 == 0 {
-                // Only reachable with non-finite costs: stop rather than loop.
-                break;
-            }
-            for j in 0..=m {
-                if used[j] {
-                    u[p[j]] += delta;
-                    v[j] -= delta;
-                } else {
-                    minv[j] -= delta;
-                }
-            }
-            j0 = j1;
-            if p[j0] == 0 {
-                break;
-            }
-        }
-        while j0 != 0 {
-            let j1 = way[j0];
-            p[j0] = p[j1];
-            j0 = j1;
-        }
-    }
-    let mut out = vec![None; rows];
-    for j in 1..=m {
-        if p[j] != 0 {
-            out[p[j] - 1] = Some(j - 1);
-        }
-    }
-    out
-}
-
 impl EmbeddingMap for SegmentMap {
     fn name(&self) -> &'static str {
         NAME
@@ -786,6 +583,13 @@ impl EmbeddingMap for SegmentMap {
 
     fn len(&self) -> usize {
         self.owner.len()
+    }
+
+    fn budget(&self) -> Option<MapBudget> {
+        Some(MapBudget {
+            parameter: "max_points",
+            elements: self.config.max_points,
+        })
     }
 
     fn memory_bytes(&self) -> usize {
@@ -917,7 +721,7 @@ impl SegmentMap {
 #[cfg(test)]
 mod tests {
     use super::*;
-    use rand::{Rng, SeedableRng};
+    use crate::storage::Precision;
     use vlem_core::{DepthImage, Frame, Intrinsics, Pose, RgbImage};
 
     const DIM: usize = 4;
@@ -962,77 +766,6 @@ mod tests {
             embeddings: Some(e),
         })
         .unwrap()
-    }
-
-    fn total(cost: &[f64], cols: usize, assignment: &[Option<usize>]) -> f64 {
-        assignment
-            .iter()
-            .enumerate()
-            .filter_map(|(r, c)| c.map(|c| cost[r * cols + c]))
-            .sum()
-    }
-
-    /// The best assignment of every row (rows <= cols) by trying all injections.
-    fn brute_force(cost: &[f64], rows: usize, cols: usize) -> f64 {
-        fn go(cost: &[f64], r: usize, rows: usize, cols: usize, used: &mut [bool]) -> f64 {
-            if r == rows {
-                return 0.0;
-            }
-            let mut best = f64::INFINITY;
-            for c in 0..cols {
-                if !used[c] {
-                    used[c] = true;
-                    best = best.min(cost[r * cols + c] + go(cost, r + 1, rows, cols, used));
-                    used[c] = false;
-                }
-            }
-            best
-        }
-        go(cost, 0, rows, cols, &mut vec![false; cols])
-    }
-
-    #[test]
-    fn hungarian_solves_hand_computed_matrices() {
-        // Square: 1 + 2 + 2 = 5 beats every other permutation.
-        let cost = [4.0, 1.0, 3.0, 2.0, 0.0, 5.0, 3.0, 2.0, 2.0];
-        assert_eq!(hungarian(&cost, 3, 3), vec![Some(1), Some(0), Some(2)]);
-        // Wide: r0 -> c1 (2) + r1 -> c0 (2) = 4 beats 1 + 4 and 3 + 2.
-        let cost = [1.0, 2.0, 3.0, 2.0, 4.0, 6.0];
-        assert_eq!(hungarian(&cost, 2, 3), vec![Some(1), Some(0)]);
-        // Tall: the same two rows plus one that is too expensive to use.
-        let cost = [1.0, 2.0, 2.0, 4.0, 9.0, 9.0];
-        assert_eq!(hungarian(&cost, 3, 2), vec![Some(1), Some(0), None]);
-        assert_eq!(hungarian(&[], 0, 3), Vec::<Option<usize>>::new());
-        assert_eq!(hungarian(&[], 2, 0), vec![None, None]);
-    }
-
-    #[test]
-    fn hungarian_matches_brute_force_on_random_matrices() {
-        let mut rng = rand::rngs::StdRng::seed_from_u64(7);
-        for _ in 0..200 {
-            let rows = rng.random_range(1..=5);
-            let cols = rng.random_range(1..=5);
-            let cost: Vec<f64> = (0..rows * cols)
-                .map(|_| f64::from(rng.random_range(-10i32..10)))
-                .collect();
-            let a = hungarian(&cost, rows, cols);
-            let assigned: Vec<usize> = a.iter().flatten().copied().collect();
-            assert_eq!(assigned.len(), rows.min(cols));
-            let mut unique = assigned.clone();
-            unique.sort_unstable();
-            unique.dedup();
-            assert_eq!(unique.len(), assigned.len(), "a column used twice");
-            let best = if rows <= cols {
-                brute_force(&cost, rows, cols)
-            } else {
-                let cost = &cost;
-                let t: Vec<f64> = (0..cols)
-                    .flat_map(|c| (0..rows).map(move |r| cost[r * cols + c]))
-                    .collect();
-                brute_force(&t, cols, rows)
-            };
-            assert_eq!(total(&cost, cols, &a), best, "{rows}x{cols} {cost:?}");
-        }
     }
 
     #[test]

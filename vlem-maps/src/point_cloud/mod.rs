@@ -18,75 +18,30 @@ use std::sync::atomic::{AtomicBool, Ordering};
 
 use kiddo::{ImmutableKdTree, SquaredEuclidean};
 use rayon::prelude::*;
-use serde::Deserialize;
 use vlem_core::embeddings::normalise;
 use vlem_core::{
-    BuildContext, ColouredMesh, CoreError, EmbeddingMap, IntegrationStats, MapMetadata,
-    MapSnapshot, Observation, PixelEmbeddings, RigidF32, StageKind, parse_params,
+    BuildContext, ColouredMesh, CoreError, EmbeddingMap, IntegrationStats, MapBudget, MapMetadata,
+    MapSnapshot, Observation, RigidF32, StageKind, parse_params,
 };
 
-use crate::common::{check_observation, check_snapshot, invalid_parameter, resolve_dim};
 use crate::error::MapError;
-use crate::storage::{EmbeddingStore, Precision, fuse_into};
+use crate::kit::{
+    FramePixels, Pixel, check_observation, check_snapshot, embedding, invalid_parameter,
+};
+use crate::storage::{EmbeddingStore, fuse_into};
 
 /// The registered name.
 pub const NAME: &str = "point-cloud";
 
-/// `[map] kind = "point-cloud"` parameters.
-#[derive(Clone, Debug, Deserialize, PartialEq)]
-#[serde(deny_unknown_fields)]
-pub struct PointCloudConfig {
-    /// Embedding dimension; defaults to the encoder's (0 without an encoder). If set, it must equal
-    /// the encoder's.
-    #[serde(default)]
-    pub dim: Option<usize>,
-    /// Point budget `N_M`; default 1,000,000.
-    #[serde(default = "default_max_points")]
-    pub max_points: usize,
-    /// Maximum correspondence distance in metres; default 0.02.
-    #[serde(default = "default_max_distance")]
-    pub max_distance: f32,
-    /// Weight `w` of the map embedding in the fusion; default 0.5 (the paper's value).
-    #[serde(default = "default_map_weight")]
-    pub map_weight: f32,
-    /// Depth beyond this (metres) is not integrated; default 10.
-    #[serde(default = "default_max_depth")]
-    pub max_depth: f32,
-    /// Use every n-th pixel in both directions; default 1 (every pixel, as in the paper).
-    #[serde(default = "default_pixel_stride")]
-    pub pixel_stride: u32,
-    /// Embedding storage, `"f32"` (default) or `"f16"` (half the bytes, same query ranking).
-    #[serde(default)]
-    pub precision: Precision,
-}
-
-fn default_max_points() -> usize {
-    1_000_000
-}
-fn default_max_distance() -> f32 {
-    0.02
-}
-fn default_map_weight() -> f32 {
-    0.5
-}
-fn default_max_depth() -> f32 {
-    10.0
-}
-fn default_pixel_stride() -> u32 {
-    1
-}
-
-impl Default for PointCloudConfig {
-    fn default() -> Self {
-        Self {
-            dim: None,
-            max_points: default_max_points(),
-            max_distance: default_max_distance(),
-            map_weight: default_map_weight(),
-            max_depth: default_max_depth(),
-            pixel_stride: default_pixel_stride(),
-            precision: Precision::default(),
-        }
+crate::map_config! {
+    /// `[map] kind = "point-cloud"` parameters.
+    pub struct PointCloudConfig {
+        /// Point budget `N_M`; default 1,000,000.
+        pub max_points: usize = 1_000_000,
+        /// Maximum correspondence distance in metres; default 0.02.
+        pub max_distance: f32 = 0.02,
+        /// Weight `w` of the map embedding in the fusion; default 0.5 (the paper's value).
+        pub map_weight: f32 = 0.5,
     }
 }
 
@@ -110,13 +65,7 @@ impl PointCloudConfig {
         if !(0.0..=1.0).contains(&self.map_weight) {
             return Err(invalid("map_weight", "must lie in [0, 1]"));
         }
-        if !(self.max_depth.is_finite() && self.max_depth > 0.0) {
-            return Err(invalid("max_depth", "must be a positive number of metres"));
-        }
-        if self.pixel_stride == 0 {
-            return Err(invalid("pixel_stride", "must be at least 1"));
-        }
-        let dim = resolve_dim(NAME, self.dim, encoder_dim)?;
+        let dim = self.common().validate(NAME, encoder_dim)?;
         Ok(PointCloudMap::new(self.clone(), dim))
     }
 }
@@ -189,40 +138,15 @@ impl PointCloudMap {
     }
 
     fn observe(&self, obs: &Observation<'_>) -> Observed {
-        let frame = obs.frame;
-        let k = &frame.intrinsics;
-        let (w, h) = (frame.depth.width(), frame.depth.height());
-        let to_map = RigidF32::from_pose(obs.pose);
-        let (fx, fy, cx, cy) = (k.fx as f32, k.fy as f32, k.cx as f32, k.cy as f32);
-        let max_depth = self.config.max_depth;
-        let depth = frame.depth.as_raw();
-        let stride = self.config.pixel_stride as usize;
-        let points: Vec<([f32; 3], u32, f32)> = (0..h as usize)
-            .into_par_iter()
-            .step_by(stride)
-            .flat_map_iter(|v| {
-                (0..w as usize).step_by(stride).filter_map(move |u| {
-                    let pixel = v * w as usize + u;
-                    let z = vlem_core::types::valid_depth(depth[pixel])?;
-                    if z > max_depth {
-                        return None;
-                    }
-                    if let Some(e) = obs.embeddings
-                        && !e.has_embedding(u as u32, v as u32)
-                    {
-                        return None;
-                    }
-                    let p = [(u as f32 - cx) * z / fx, (v as f32 - cy) * z / fy, z];
-                    Some((to_map.apply(p), pixel as u32, z))
-                })
-            })
+        let points: Vec<Pixel> = FramePixels::new(obs, &self.config.common())
+            .par_iter()
             .collect();
         let mean_depth = if points.is_empty() {
             0.0
         } else {
-            points.iter().map(|p| p.2).sum::<f32>() / points.len() as f32
+            points.iter().map(|p| p.depth).sum::<f32>() / points.len() as f32
         };
-        let (positions, pixels) = points.into_iter().map(|(p, i, _)| (p, i)).unzip();
+        let (positions, pixels) = points.into_iter().map(|p| (p.world, p.index)).unzip();
         Observed {
             positions,
             pixels,
@@ -289,7 +213,6 @@ impl PointCloudMap {
             return;
         };
         let dim = self.dim;
-        let width = obs.frame.depth.width();
         self.embeddings.par_update_rows_with(
             0,
             || vec![0.0f32; dim],
@@ -298,7 +221,7 @@ impl PointCloudMap {
                 if m == u32::MAX {
                     return false;
                 }
-                match lookup(embeddings, new.pixels[m as usize], width, &mut scratch[..]) {
+                match embedding(embeddings, new.pixels[m as usize], &mut scratch[..]) {
                     Some(e_new) => {
                         fuse_into(e_map, e_new, w);
                         true
@@ -325,7 +248,6 @@ impl PointCloudMap {
         {
             let start = self.embeddings.rows();
             self.embeddings.grow(fresh.len());
-            let width = obs.frame.depth.width();
             let missing = AtomicBool::new(false);
             self.embeddings.par_update_rows_with(
                 start,
@@ -334,7 +256,7 @@ impl PointCloudMap {
                     let pixel = new.pixels[fresh[row_index - start]];
                     // `observe` keeps pixels that have an embedding, but a patch grid's
                     // interpolation can still cancel out (or overflow): that row stays zero.
-                    match lookup(embeddings, pixel, width, &mut scratch[..]) {
+                    match embedding(embeddings, pixel, &mut scratch[..]) {
                         Some(e) => {
                             row.copy_from_slice(e);
                             true
@@ -544,21 +466,6 @@ impl VoxelGroups {
     }
 }
 
-/// The embedding of a pixel: the stored row for segments, interpolated into `scratch` for patches.
-#[inline]
-fn lookup<'a>(
-    embeddings: &'a PixelEmbeddings,
-    pixel: u32,
-    width: u32,
-    scratch: &'a mut [f32],
-) -> Option<&'a [f32]> {
-    let (u, v) = (pixel % width, pixel / width);
-    match embeddings.segment_row(u, v) {
-        Some(row) => Some(row),
-        None => embeddings.embedding_at(u, v, scratch).then_some(&*scratch),
-    }
-}
-
 /// Voxels per axis that [`voxel_key`] tells apart.
 const KEY_AXIS_VOXELS: f32 = ((1u32 << 21) - 1) as f32;
 
@@ -627,6 +534,13 @@ impl EmbeddingMap for PointCloudMap {
         self.positions.len()
     }
 
+    fn budget(&self) -> Option<MapBudget> {
+        Some(MapBudget {
+            parameter: "max_points",
+            elements: self.config.max_points,
+        })
+    }
+
     fn memory_bytes(&self) -> usize {
         self.positions.capacity() * std::mem::size_of::<[f32; 3]>()
             + self.colours.capacity() * 3
@@ -675,7 +589,8 @@ impl EmbeddingMap for PointCloudMap {
 #[cfg(test)]
 mod tests {
     use super::*;
-    use vlem_core::{DepthImage, Frame, Intrinsics, Pose, RgbImage};
+    use crate::storage::Precision;
+    use vlem_core::{DepthImage, Frame, Intrinsics, PixelEmbeddings, Pose, RgbImage};
 
     const DIM: usize = 4;
 

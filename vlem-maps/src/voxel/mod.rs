@@ -26,18 +26,16 @@ use std::collections::HashMap;
 use std::hash::{BuildHasherDefault, Hash, Hasher};
 
 use rayon::prelude::*;
-use serde::Deserialize;
 use vlem_core::embeddings::normalise;
 use vlem_core::{
-    BuildContext, ColouredMesh, CoreError, EmbeddingMap, IntegrationStats, MapMetadata,
-    MapSnapshot, Observation, PixelEmbeddings, RgbImage, RigidF32, StageKind, parse_params,
+    BuildContext, ColouredMesh, CoreError, EmbeddingMap, IntegrationStats, MapBudget, MapMetadata,
+    MapSnapshot, Observation, PixelEmbeddings, RgbImage, StageKind, parse_params,
 };
 
-use crate::common::{
-    check_observation, check_snapshot, hash_buckets, invalid_parameter, resolve_dim,
-};
 use crate::error::MapError;
-use crate::storage::{EmbeddingStore, Precision};
+use crate::kit::memory::hash_buckets;
+use crate::kit::{FramePixels, check_observation, check_snapshot, invalid_parameter};
+use crate::storage::EmbeddingStore;
 
 /// The registered name.
 pub const NAME: &str = "voxel";
@@ -50,59 +48,17 @@ pub const MIN_VOXEL_SIZE: f32 = 1e-4;
 /// added before eviction.
 pub const MAX_VOXEL_BUDGET: usize = 1 << 30;
 
-/// `[map] kind = "voxel"` parameters.
-#[derive(Clone, Debug, Deserialize, PartialEq)]
-#[serde(deny_unknown_fields)]
-pub struct VoxelConfig {
-    /// Embedding dimension; defaults to the encoder's (0 without an encoder). If set, it must equal
-    /// the encoder's.
-    #[serde(default)]
-    pub dim: Option<usize>,
-    /// Edge length of a voxel in metres; default 0.05 (RayFronts' setting in the paper).
-    #[serde(default = "default_voxel_size")]
-    pub voxel_size: f32,
-    /// Voxel budget; default 1,000,000. The least recently observed voxels are evicted beyond it.
-    #[serde(default = "default_max_voxels")]
-    pub max_voxels: usize,
-    /// Depth beyond this (metres) is not integrated; default 10.
-    #[serde(default = "default_max_depth")]
-    pub max_depth: f32,
-    /// Use every n-th pixel in both directions; default 1 (every pixel).
-    #[serde(default = "default_pixel_stride")]
-    pub pixel_stride: u32,
-    /// Embedding storage, `"f32"` (default) or `"f16"` (half the bytes, same query ranking).
-    #[serde(default)]
-    pub precision: Precision,
-    /// Cap on a voxel's observation count (pixels), so its mean keeps adapting; default none
-    /// (an exact running mean over all observations).
-    #[serde(default)]
-    pub max_observations: Option<u32>,
-}
-
-fn default_voxel_size() -> f32 {
-    0.05
-}
-fn default_max_voxels() -> usize {
-    1_000_000
-}
-fn default_max_depth() -> f32 {
-    10.0
-}
-fn default_pixel_stride() -> u32 {
-    1
-}
-
-impl Default for VoxelConfig {
-    fn default() -> Self {
-        Self {
-            dim: None,
-            voxel_size: default_voxel_size(),
-            max_voxels: default_max_voxels(),
-            max_depth: default_max_depth(),
-            pixel_stride: default_pixel_stride(),
-            precision: Precision::default(),
-            max_observations: None,
-        }
+crate::map_config! {
+    /// `[map] kind = "voxel"` parameters.
+    pub struct VoxelConfig {
+        /// Edge length of a voxel in metres; default 0.05 (RayFronts' setting in the paper).
+        pub voxel_size: f32 = 0.05,
+        /// Voxel budget; default 1,000,000. The least recently observed voxels are evicted beyond
+        /// it.
+        pub max_voxels: usize = 1_000_000,
+        /// Cap on a voxel's observation count (pixels), so its mean keeps adapting; default none
+        /// (an exact running mean over all observations).
+        pub max_observations: Option<u32> = None,
     }
 }
 
@@ -126,19 +82,13 @@ impl VoxelConfig {
                 &format!("must lie in [1, {MAX_VOXEL_BUDGET}]"),
             ));
         }
-        if !(self.max_depth.is_finite() && self.max_depth > 0.0) {
-            return Err(invalid("max_depth", "must be a positive number of metres"));
-        }
-        if self.pixel_stride == 0 {
-            return Err(invalid("pixel_stride", "must be at least 1"));
-        }
         if self.max_observations == Some(0) {
             return Err(invalid(
                 "max_observations",
                 "must be at least 1 (or left out for no cap)",
             ));
         }
-        let dim = resolve_dim(NAME, self.dim, encoder_dim)?;
+        let dim = self.common().validate(NAME, encoder_dim)?;
         Ok(VoxelMap::new(self.clone(), dim))
     }
 }
@@ -381,34 +331,10 @@ impl VoxelMap {
     /// The voxel and linear pixel index of every usable pixel, sorted by voxel then pixel (so the
     /// sums below are deterministic).
     fn observe(&self, obs: &Observation<'_>) -> Vec<(VoxelKey, u32)> {
-        let frame = obs.frame;
-        let k = &frame.intrinsics;
-        let (w, h) = (frame.depth.width() as usize, frame.depth.height() as usize);
-        let to_map = RigidF32::from_pose(obs.pose);
-        let (fx, fy, cx, cy) = (k.fx as f32, k.fy as f32, k.cx as f32, k.cy as f32);
-        let max_depth = self.config.max_depth;
         let inverse_size = 1.0 / self.config.voxel_size;
-        let depth = frame.depth.as_raw();
-        let stride = self.config.pixel_stride as usize;
-        let mut pixels: Vec<(VoxelKey, u32)> = (0..h)
-            .into_par_iter()
-            .step_by(stride)
-            .flat_map_iter(|v| {
-                (0..w).step_by(stride).filter_map(move |u| {
-                    let pixel = v * w + u;
-                    let z = vlem_core::types::valid_depth(depth[pixel])?;
-                    if z > max_depth {
-                        return None;
-                    }
-                    if let Some(e) = obs.embeddings
-                        && !e.has_embedding(u as u32, v as u32)
-                    {
-                        return None;
-                    }
-                    let p = [(u as f32 - cx) * z / fx, (v as f32 - cy) * z / fy, z];
-                    Some((VoxelKey::of(to_map.apply(p), inverse_size), pixel as u32))
-                })
-            })
+        let mut pixels: Vec<(VoxelKey, u32)> = FramePixels::new(obs, &self.config.common())
+            .par_iter()
+            .map(|p| (VoxelKey::of(p.world, inverse_size), p.index))
             .collect();
         pixels.par_sort_unstable();
         pixels
@@ -656,6 +582,13 @@ impl EmbeddingMap for VoxelMap {
         self.keys.len()
     }
 
+    fn budget(&self) -> Option<MapBudget> {
+        Some(MapBudget {
+            parameter: "max_voxels",
+            elements: self.config.max_voxels,
+        })
+    }
+
     fn memory_bytes(&self) -> usize {
         use std::mem::size_of;
         // The hash map: one key, one value and one control byte per bucket.
@@ -738,6 +671,7 @@ impl EmbeddingMap for VoxelMap {
 #[cfg(test)]
 mod tests {
     use super::*;
+    use crate::storage::Precision;
     use vlem_core::{DepthImage, Frame, Intrinsics, Pose, RgbImage};
 
     const DIM: usize = 4;

@@ -1,0 +1,148 @@
+//! The `[map]` parameters every map has (`dim`, `max_depth`, `pixel_stride`, `precision`), their
+//! defaults and their validation, and [`map_config!`](crate::map_config) that declares a map's
+//! config with them.
+//!
+//! Why a macro and not a nested struct: configs are read with `#[serde(deny_unknown_fields)]` so
+//! that a misspelt key is an error, and serde cannot combine that with `#[serde(flatten)]`. The
+//! macro writes the shared fields into each config instead, once, so the configs stay flat
+//! (`PointCloudConfig { precision, ..Default::default() }`, `[map] max_depth = 4`), unknown keys
+//! are still refused, and the docs, defaults and checks of the shared fields exist only here.
+
+use vlem_core::CoreError;
+
+use super::checks::{invalid_parameter, resolve_dim};
+use crate::storage::Precision;
+
+/// Default [`MapCommon::max_depth`] in metres.
+pub const DEFAULT_MAX_DEPTH: f32 = 10.0;
+
+/// Default [`MapCommon::pixel_stride`]: every pixel.
+pub const DEFAULT_PIXEL_STRIDE: u32 = 1;
+
+/// The parameters every map shares, as read from its config.
+#[derive(Clone, Copy, Debug, PartialEq)]
+pub struct MapCommon {
+    /// Embedding dimension; `None` takes the encoder's (0 without an encoder).
+    pub dim: Option<usize>,
+    /// Depth beyond this (metres) is not integrated.
+    pub max_depth: f32,
+    /// Use every n-th pixel in both directions.
+    pub pixel_stride: u32,
+    /// Embedding storage.
+    pub precision: Precision,
+}
+
+impl Default for MapCommon {
+    fn default() -> Self {
+        Self {
+            dim: None,
+            max_depth: DEFAULT_MAX_DEPTH,
+            pixel_stride: DEFAULT_PIXEL_STRIDE,
+            precision: Precision::default(),
+        }
+    }
+}
+
+impl MapCommon {
+    /// Checks the shared parameters of map `map` and returns its embedding dimension for an
+    /// encoder of `encoder_dim` (`None` without an encoder): `dim` if set (it must equal the
+    /// encoder's), else the encoder's, else 0.
+    ///
+    /// # Errors
+    /// [`MapError::InvalidParameter`](crate::MapError::InvalidParameter) (wrapped as a stage
+    /// error) for a `max_depth` that is not a positive number, a `pixel_stride` of 0, or a `dim`
+    /// that disagrees with the encoder.
+    pub fn validate(&self, map: &str, encoder_dim: Option<usize>) -> Result<usize, CoreError> {
+        if !(self.max_depth.is_finite() && self.max_depth > 0.0) {
+            return Err(invalid_parameter(
+                map,
+                "max_depth",
+                "must be a positive number of metres",
+            ));
+        }
+        if self.pixel_stride == 0 {
+            return Err(invalid_parameter(map, "pixel_stride", "must be at least 1"));
+        }
+        resolve_dim(map, self.dim, encoder_dim)
+    }
+}
+
+/// Declares a map's `[map]` config: a struct with the shared fields of [`MapCommon`] (`dim`,
+/// `max_depth`, `pixel_stride`, `precision`, documented and defaulted here) and the map's own
+/// fields, each with its default after `=`:
+///
+/// ```
+/// vlem_maps::map_config! {
+///     /// `[map] kind = "my-map"` parameters.
+///     pub struct MyMapConfig {
+///         /// Element budget; default 1000.
+///         pub max_elements: usize = 1000,
+///     }
+/// }
+/// let config: MyMapConfig = toml::from_str("max_elements = 5\nmax_depth = 4.0").unwrap();
+/// assert_eq!((config.max_elements, config.max_depth, config.pixel_stride), (5, 4.0, 1));
+/// assert!(toml::from_str::<MyMapConfig>("max_elemnts = 5").is_err());
+/// assert_eq!(config.common().validate("my-map", Some(3)).unwrap(), 3);
+/// ```
+///
+/// The struct derives `Clone`, `Debug`, `PartialEq`, `Default` (from the given defaults) and
+/// serde's `Deserialize` with `deny_unknown_fields` (a missing key takes its default), so the
+/// crate using the macro needs `serde` as a dependency. `common()` returns the shared fields as a
+/// [`MapCommon`], whose [`MapCommon::validate`] checks them.
+#[macro_export]
+macro_rules! map_config {
+    (
+        $(#[$meta:meta])*
+        $vis:vis struct $name:ident {
+            $(
+                $(#[$field_meta:meta])*
+                $field_vis:vis $field:ident : $ty:ty = $default:expr
+            ),* $(,)?
+        }
+    ) => {
+        $(#[$meta])*
+        #[derive(Clone, Debug, PartialEq, serde::Deserialize)]
+        #[serde(default, deny_unknown_fields)]
+        $vis struct $name {
+            /// Embedding dimension; defaults to the encoder's (0 without an encoder). If set, it
+            /// must equal the encoder's.
+            pub dim: Option<usize>,
+            $(
+                $(#[$field_meta])*
+                $field_vis $field: $ty,
+            )*
+            /// Depth beyond this (metres) is not integrated; default 10.
+            pub max_depth: f32,
+            /// Use every n-th pixel in both directions; default 1 (every pixel, as in the paper).
+            pub pixel_stride: u32,
+            /// Embedding storage, `"f32"` (default) or `"f16"` (half the bytes, same query
+            /// ranking).
+            pub precision: $crate::storage::Precision,
+        }
+
+        impl ::core::default::Default for $name {
+            fn default() -> Self {
+                let common = $crate::kit::MapCommon::default();
+                Self {
+                    dim: common.dim,
+                    $($field: $default,)*
+                    max_depth: common.max_depth,
+                    pixel_stride: common.pixel_stride,
+                    precision: common.precision,
+                }
+            }
+        }
+
+        impl $name {
+            /// The parameters every map shares.
+            pub fn common(&self) -> $crate::kit::MapCommon {
+                $crate::kit::MapCommon {
+                    dim: self.dim,
+                    max_depth: self.max_depth,
+                    pixel_stride: self.pixel_stride,
+                    precision: self.precision,
+                }
+            }
+        }
+    };
+}

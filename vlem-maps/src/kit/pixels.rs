@@ -1,0 +1,183 @@
+//! [`FramePixels`]: the pixels of one frame that a map integrates, back-projected into the world.
+//!
+//! Why it exists: every map starts its integration by walking the frame's depth image at its
+//! `pixel_stride`, keeping the pixels with a valid depth (finite, > 0) no deeper than `max_depth`
+//! that carry an embedding, and back-projecting them through the intrinsics and the camera pose.
+//! It is the hot loop of integration, and the ground truth of `vlem-eval` needs the same points;
+//! written once here, every map (and the ground truth) sees exactly the same points.
+
+use std::iter::StepBy;
+use std::ops::Range;
+
+use rayon::prelude::*;
+use vlem_core::types::valid_depth;
+use vlem_core::{DepthImage, Intrinsics, Observation, PixelEmbeddings, Pose, RgbImage, RigidF32};
+
+use super::config::MapCommon;
+
+/// One pixel of a frame with a valid depth, in world (map) coordinates.
+#[derive(Clone, Copy, Debug, PartialEq)]
+pub struct Pixel {
+    /// Column.
+    pub u: u32,
+    /// Row.
+    pub v: u32,
+    /// Linear index `v * width + u` into the frame's images.
+    pub index: u32,
+    /// Depth in metres (the camera-frame `z`).
+    pub depth: f32,
+    /// The back-projected point in the world (map) frame.
+    pub world: [f32; 3],
+}
+
+impl Pixel {
+    /// The pixel's colour in `image` (the frame's colour image).
+    #[inline]
+    pub fn colour(&self, image: &RgbImage) -> [u8; 3] {
+        image.at_index(self.index as usize)
+    }
+}
+
+/// The valid pixels of one frame at a stride, in world coordinates: row-major with
+/// [`FramePixels::iter`], or a row per task with [`FramePixels::par_iter`] (same order once
+/// collected).
+///
+/// A pixel is yielded when its depth is finite, positive and at most `max_depth`, and, when the
+/// frame has embeddings, [`PixelEmbeddings::has_embedding`] holds for it. Its world point is
+/// `pose * ((u - cx) z / fx, (v - cy) z / fy, z)` in `f32`.
+#[derive(Clone, Copy, Debug)]
+pub struct FramePixels<'a> {
+    depth: &'a [f32],
+    width: u32,
+    height: u32,
+    fx: f32,
+    fy: f32,
+    cx: f32,
+    cy: f32,
+    to_world: RigidF32,
+    max_depth: f32,
+    stride: u32,
+    embeddings: Option<&'a PixelEmbeddings>,
+}
+
+impl<'a> FramePixels<'a> {
+    /// The pixels a map with the shared parameters `common` integrates from `obs`: its
+    /// `max_depth` and `pixel_stride`, and only pixels with an embedding when `obs` has
+    /// embeddings. Check the observation first ([`check_observation`](super::check_observation)):
+    /// the embeddings must be the size of the depth image.
+    pub fn new(obs: &Observation<'a>, common: &MapCommon) -> Self {
+        let frame = obs.frame;
+        let mut pixels = Self::of_depth(
+            &frame.depth,
+            &frame.intrinsics,
+            obs.pose,
+            common.pixel_stride,
+        );
+        pixels.max_depth = common.max_depth;
+        pixels.embeddings = obs.embeddings;
+        pixels
+    }
+
+    /// Every `stride`-th pixel (in both directions, at least 1) of `depth` with a valid depth,
+    /// at any depth, seen with `intrinsics` from the camera-to-world `pose`: the ground truth's
+    /// view of a labelled frame. The intrinsics must be those of an image of the depth's size.
+    pub fn of_depth(
+        depth: &'a DepthImage,
+        intrinsics: &Intrinsics,
+        pose: &Pose,
+        stride: u32,
+    ) -> Self {
+        Self {
+            depth: depth.as_raw(),
+            width: depth.width(),
+            height: depth.height(),
+            fx: intrinsics.fx as f32,
+            fy: intrinsics.fy as f32,
+            cx: intrinsics.cx as f32,
+            cy: intrinsics.cy as f32,
+            to_world: RigidF32::from_pose(pose),
+            max_depth: f32::INFINITY,
+            stride: stride.max(1),
+            embeddings: None,
+        }
+    }
+
+    /// Width of the frame in pixels.
+    pub fn width(&self) -> u32 {
+        self.width
+    }
+
+    /// The rows visited (every `stride`-th).
+    pub fn rows(&self) -> StepBy<Range<u32>> {
+        (0..self.height).step_by(self.stride as usize)
+    }
+
+    /// The yielded pixels of row `v`, left to right.
+    #[inline]
+    pub fn row(&self, v: u32) -> impl Iterator<Item = Pixel> + use<'a> {
+        let this = *self;
+        (0..this.width)
+            .step_by(this.stride as usize)
+            .filter_map(move |u| this.pixel(u, v))
+    }
+
+    /// Every yielded pixel, row-major.
+    pub fn iter(&self) -> impl Iterator<Item = Pixel> + use<'a> {
+        let this = *self;
+        self.rows().flat_map(move |v| this.row(v))
+    }
+
+    /// Every yielded pixel, a row per task; `collect` keeps the row-major order of
+    /// [`FramePixels::iter`].
+    pub fn par_iter(&self) -> impl ParallelIterator<Item = Pixel> + use<'a> {
+        let this = *self;
+        (0..self.height)
+            .into_par_iter()
+            .step_by(self.stride as usize)
+            .flat_map_iter(move |v| this.row(v))
+    }
+
+    /// Pixel `(u, v)` if it is one to yield.
+    #[inline]
+    fn pixel(&self, u: u32, v: u32) -> Option<Pixel> {
+        let index = v * self.width + u;
+        let z = valid_depth(self.depth[index as usize])?;
+        if z > self.max_depth {
+            return None;
+        }
+        if let Some(e) = self.embeddings
+            && !e.has_embedding(u, v)
+        {
+            return None;
+        }
+        let camera = [
+            (u as f32 - self.cx) * z / self.fx,
+            (v as f32 - self.cy) * z / self.fy,
+            z,
+        ];
+        Some(Pixel {
+            u,
+            v,
+            index,
+            depth: z,
+            world: self.to_world.apply(camera),
+        })
+    }
+}
+
+/// The embedding of the pixel with linear index `pixel`: the stored row in the segment layout
+/// (no copy), interpolated into `scratch` (of the embeddings' dimension) for a patch grid. `None`
+/// for a pixel without one (outside every segment, or an interpolation that cancels out).
+#[inline]
+pub fn embedding<'s>(
+    embeddings: &'s PixelEmbeddings,
+    pixel: u32,
+    scratch: &'s mut [f32],
+) -> Option<&'s [f32]> {
+    let width = embeddings.width();
+    let (u, v) = (pixel % width, pixel / width);
+    match embeddings.segment_row(u, v) {
+        Some(row) => Some(row),
+        None => embeddings.embedding_at(u, v, scratch).then_some(&*scratch),
+    }
+}
