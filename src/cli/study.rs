@@ -21,8 +21,8 @@ use indicatif::{ProgressBar, ProgressStyle};
 use serde::Deserialize;
 use vlem_core::Config;
 
-use crate::output::write_atomically;
 use super::study_result::CellResult;
+use crate::output::write_atomically;
 
 /// Arguments of `vlem study`.
 #[derive(clap::Args, Debug)]
