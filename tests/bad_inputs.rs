@@ -10,9 +10,13 @@
 
 mod common;
 
-use common::{fails, repo};
+use common::fails;
+#[cfg(all(feature = "colour-names", feature = "point-cloud"))]
+use common::repo;
 
-use std::path::{Path, PathBuf};
+use std::path::Path;
+#[cfg(all(feature = "colour-names", feature = "point-cloud"))]
+use std::path::PathBuf;
 
 fn write_config(dir: &Path, text: &str) -> String {
     let path = dir.join("test.toml");
@@ -21,6 +25,7 @@ fn write_config(dir: &Path, text: &str) -> String {
 }
 
 /// A copy of the first `n` committed living-room frames (ICL layout, with poses) in `dir`.
+#[cfg(all(feature = "colour-names", feature = "point-cloud"))]
 fn living_room_copy(dir: &Path, n: usize) -> PathBuf {
     let src = repo().join("data/living-room");
     let dst = dir.join("dataset");
@@ -39,6 +44,7 @@ fn living_room_copy(dir: &Path, n: usize) -> PathBuf {
 
 /// `vlem run` of a point-cloud map with `extra` config lines on `dataset`; returns the error it
 /// printed (stderr from `error: ` on, without the start-up line before it).
+#[cfg(all(feature = "colour-names", feature = "point-cloud"))]
 fn run_fails(tmp: &Path, dataset: &Path, extra: &str) -> String {
     let config = write_config(
         tmp,
@@ -62,6 +68,7 @@ fn run_fails(tmp: &Path, dataset: &Path, extra: &str) -> String {
     }
 }
 
+#[cfg(all(feature = "colour-names", feature = "point-cloud"))]
 #[test]
 fn a_depth_scale_that_makes_metres_1000_times_too_large_or_small_is_refused() {
     // The committed depth PNGs are millimetres (depth_scale 1000); their raw median in frame 0
@@ -90,6 +97,7 @@ fn a_depth_scale_that_makes_metres_1000_times_too_large_or_small_is_refused() {
     assert!(err.contains("e.g. 1000 (median 1.84 m)"), "{err}");
 }
 
+#[cfg(all(feature = "colour-names", feature = "point-cloud"))]
 #[test]
 fn bad_intrinsics_are_refused_with_the_reason() {
     let tmp = tempfile::tempdir().unwrap();
@@ -141,6 +149,7 @@ fn bad_intrinsics_are_refused_with_the_reason() {
     );
 }
 
+#[cfg(all(feature = "colour-names", feature = "point-cloud"))]
 #[test]
 fn a_truncated_depth_image_names_the_file() {
     let tmp = tempfile::tempdir().unwrap();
@@ -178,6 +187,7 @@ fn a_missing_or_malformed_config_file_is_named() {
     );
 }
 
+#[cfg(all(feature = "colour-names", feature = "point-cloud"))]
 #[test]
 fn an_empty_dataset_folder_is_refused_by_the_command() {
     let tmp = tempfile::tempdir().unwrap();
@@ -190,6 +200,7 @@ fn an_empty_dataset_folder_is_refused_by_the_command() {
     );
 }
 
+#[cfg(all(feature = "label-text", feature = "point-cloud"))]
 #[test]
 fn missing_model_weights_name_the_files_and_how_to_get_them() {
     let tmp = tempfile::tempdir().unwrap();

@@ -9,12 +9,16 @@
 
 mod common;
 
+#[cfg(all(feature = "colour-names", feature = "point-cloud"))]
 use std::io::Write;
+#[cfg(all(feature = "colour-names", feature = "point-cloud"))]
 use std::process::{Command, Stdio};
 
+#[cfg(all(feature = "colour-names", feature = "point-cloud"))]
 use common::{ok, repo};
 
 /// Runs an interactive session on `map` with `input` on stdin; returns (success, stdout, stderr).
+#[cfg(all(feature = "colour-names", feature = "point-cloud"))]
 fn session(args: &[&str], input: &str) -> (bool, String, String) {
     let mut child = Command::new(env!("CARGO_BIN_EXE_vlem"))
         .args(args)
@@ -38,6 +42,7 @@ fn session(args: &[&str], input: &str) -> (bool, String, String) {
     )
 }
 
+#[cfg(all(feature = "colour-names", feature = "point-cloud"))]
 fn hits(stdout: &str, query: &str) -> Vec<usize> {
     stdout
         .lines()
@@ -53,6 +58,7 @@ fn hits(stdout: &str, query: &str) -> Vec<usize> {
         .collect()
 }
 
+#[cfg(all(feature = "colour-names", feature = "point-cloud"))]
 #[test]
 fn interactive_session_answers_many_queries_on_one_map() {
     let tmp = tempfile::tempdir().unwrap();
@@ -118,6 +124,7 @@ fn interactive_session_answers_many_queries_on_one_map() {
     }
 }
 
+#[cfg(all(feature = "colour-names", feature = "point-cloud"))]
 #[test]
 fn interactive_session_ends_at_end_of_input_and_takes_command_line_queries_first() {
     let tmp = tempfile::tempdir().unwrap();

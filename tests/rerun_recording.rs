@@ -38,6 +38,7 @@ fn assert_has(rows: &BTreeMap<String, usize>, entity: &str, at_least: usize) {
     );
 }
 
+#[cfg(all(feature = "colour-names", feature = "point-cloud"))]
 #[test]
 fn demo_recording_has_frames_map_and_query_heatmaps() {
     let tmp = tempfile::tempdir().unwrap();
@@ -77,6 +78,7 @@ fn demo_recording_has_frames_map_and_query_heatmaps() {
     );
 }
 
+#[cfg(all(feature = "colour-names", feature = "point-cloud"))]
 #[test]
 fn query_recording_has_heatmap_sets_and_grasp() {
     let tmp = tempfile::tempdir().unwrap();
@@ -127,6 +129,7 @@ fn frame_to_model_recording_has_the_colour_model() {
     assert_has(&rows, "/world/camera", 5);
 }
 
+#[cfg(all(feature = "clip", feature = "graph", feature = "point-cloud"))]
 #[test]
 fn segment_encoder_recording_has_the_proposer_segments() {
     let tmp = tempfile::tempdir().unwrap();

@@ -1,5 +1,6 @@
 //! `vlem soak`, shortened for CI: a few hundred small synthetic frames under a tiny map budget.
 //! The full 10,000-frame run is in BENCHMARKS.md ("Soak").
+#![cfg(feature = "point-cloud")]
 #![allow(
     clippy::unwrap_used,
     clippy::expect_used,
@@ -9,12 +10,17 @@
 
 mod common;
 
-use common::{fails, ok};
+#[cfg(any(feature = "colour-names", feature = "voxel"))]
+use common::fails;
+#[cfg(all(feature = "colour-names", feature = "point-cloud"))]
+use common::ok;
 
+#[cfg(all(feature = "colour-names", feature = "point-cloud"))]
 use std::path::Path;
 
 /// A soak config: the synthetic scene at 80x60 with its exact poses (odometry loses track on so
 /// few pixels), colour names, a point cloud of `max_points`.
+#[cfg(all(feature = "colour-names", feature = "point-cloud"))]
 fn write_config(dir: &Path, max_points: usize) -> String {
     let path = dir.join("soak.toml");
     std::fs::write(
@@ -29,10 +35,12 @@ fn write_config(dir: &Path, max_points: usize) -> String {
     path.to_string_lossy().into_owned()
 }
 
+#[cfg(all(feature = "colour-names", feature = "point-cloud"))]
 fn read_json(path: &Path) -> serde_json::Value {
     serde_json::from_str(&std::fs::read_to_string(path).unwrap()).unwrap()
 }
 
+#[cfg(all(feature = "colour-names", feature = "point-cloud"))]
 #[test]
 fn a_short_soak_fills_the_map_to_its_budget_and_memory_stays_flat() {
     let tmp = tempfile::tempdir().unwrap();
@@ -90,6 +98,7 @@ fn a_short_soak_fills_the_map_to_its_budget_and_memory_stays_flat() {
     assert!(rows[2..].iter().all(|r| r[2] >= 6400), "{rows:?}");
 }
 
+#[cfg(all(feature = "colour-names", feature = "point-cloud"))]
 #[test]
 fn a_budget_the_map_never_reaches_fails_the_soak() {
     let tmp = tempfile::tempdir().unwrap();
@@ -118,6 +127,7 @@ fn a_budget_the_map_never_reaches_fails_the_soak() {
     );
 }
 
+#[cfg(feature = "voxel")]
 #[test]
 fn soak_configs_need_a_synthetic_scene_and_an_explicit_budget() {
     let tmp = tempfile::tempdir().unwrap();
@@ -145,6 +155,7 @@ fn soak_configs_need_a_synthetic_scene_and_an_explicit_budget() {
     assert!(err.contains("--sample-every must be at least 1"), "{err}");
 }
 
+#[cfg(all(feature = "colour-names", feature = "point-cloud"))]
 #[test]
 fn the_shipped_soak_config_is_valid() {
     // Only its first frames: the config parses, builds and fills nothing yet, so it fails the

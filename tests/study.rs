@@ -1,4 +1,5 @@
 //! `vlem study`: cells, shards, resuming, failing cells, the CSV and the plot.
+#![cfg(all(feature = "colour-names", feature = "point-cloud"))]
 #![allow(
     clippy::unwrap_used,
     clippy::expect_used,
@@ -64,6 +65,7 @@ fn write_study(dir: &Path, axes: &str) -> std::path::PathBuf {
     study
 }
 
+#[cfg(feature = "voxel")]
 const TWO_MAPS: &str = r#"
 [[maps]]
 name = "point-cloud 5 cm"
@@ -96,6 +98,7 @@ fn column<'a>(rows: &'a [Vec<String>], name: &str) -> Vec<&'a str> {
     rows[1..].iter().map(|r| r[i].as_str()).collect()
 }
 
+#[cfg(feature = "voxel")]
 #[test]
 fn shards_together_run_every_cell_once_and_the_report_gathers_them() {
     let dir = tempfile::tempdir().unwrap();

@@ -120,6 +120,7 @@ fn the_synthetic_scene_is_tracked_against_its_exact_reference() {
     assert!(ate < 0.005, "ATE {ate} m");
 }
 
+#[cfg(all(feature = "colour-names", feature = "point-cloud"))]
 #[test]
 fn the_embedding_map_can_take_its_poses_from_odometry() {
     let tmp = tempfile::tempdir().unwrap();
