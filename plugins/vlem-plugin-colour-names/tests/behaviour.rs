@@ -1,5 +1,6 @@
 //! What the colour-names encoder does on synthetic colours, on text, on its parameters and on a
 //! real photo.
+#![cfg(feature = "colour-names")]
 #![allow(
     clippy::unwrap_used,
     clippy::expect_used,

@@ -1,4 +1,5 @@
 //! The shared encoder conformance suite of `vlem-testkit`, run on the colour-names encoder.
+#![cfg(feature = "colour-names")]
 
 use vlem_plugin_colour_names::ColourNamesEncoder;
 
