@@ -25,7 +25,7 @@ use vlem_core::{
     BuildContext, Config, CoreError, EmbeddingMap, IntegrationStats, MapBudget, MapMetadata,
     MapSnapshot, Observation, StageKind, parse_params,
 };
-use vlem_maps::kit::{FramePixels, check_observation, embedding, invalid_parameter};
+use vlem_maps::kit::{FramePixels, check_observation, embedding, positive_metres};
 use vlem_maps::storage::EmbeddingStore;
 // Linked for their registrations: the `ground-truth` tracker and the `colour-names` encoder.
 use vlem_plugin_colour_names as _;
@@ -60,13 +60,7 @@ struct LatestVoxelMap {
 
 fn build(params: &toml::Table, ctx: &BuildContext) -> vlem_core::Result<Box<dyn EmbeddingMap>> {
     let config: LatestVoxelConfig = parse_params(StageKind::Map, NAME, params)?;
-    if !(config.voxel_size.is_finite() && config.voxel_size > 0.0) {
-        return Err(invalid_parameter(
-            NAME,
-            "voxel_size",
-            "must be a positive number of metres",
-        ));
-    }
+    positive_metres(NAME, "voxel_size", config.voxel_size)?;
     let dim = config.common().validate(NAME, ctx.embedding_dim)?;
     Ok(Box::new(LatestVoxelMap {
         embeddings: EmbeddingStore::new(dim, config.precision),

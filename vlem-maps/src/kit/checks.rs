@@ -1,4 +1,4 @@
-//! The checks every map makes: a parameter out of range, the embedding dimension against the
+//! The checks every map makes: a parameter out of range (and the ranges maps share), the embedding dimension against the
 //! encoder's, an observation's and a snapshot's embeddings against the map's dimension.
 
 use vlem_core::{CoreError, MapSnapshot, Observation, StageKind};
@@ -15,6 +15,43 @@ pub fn invalid_parameter(map: &str, name: &'static str, reason: &str) -> CoreErr
             reason: reason.to_owned(),
         },
     )
+}
+
+/// `value` must be at least 1 (a budget, a count, a stride).
+///
+/// # Errors
+/// [`invalid_parameter`] otherwise.
+pub fn at_least_one(map: &str, name: &'static str, value: usize) -> Result<(), CoreError> {
+    if value == 0 {
+        return Err(invalid_parameter(map, name, "must be at least 1"));
+    }
+    Ok(())
+}
+
+/// `value` must be a positive, finite number of metres (a distance, a cell size, a depth).
+///
+/// # Errors
+/// [`invalid_parameter`] otherwise.
+pub fn positive_metres(map: &str, name: &'static str, value: f32) -> Result<(), CoreError> {
+    if !(value.is_finite() && value > 0.0) {
+        return Err(invalid_parameter(
+            map,
+            name,
+            "must be a positive number of metres",
+        ));
+    }
+    Ok(())
+}
+
+/// `value` must lie in [0, 1] (a fusion weight).
+///
+/// # Errors
+/// [`invalid_parameter`] otherwise.
+pub fn unit_weight(map: &str, name: &'static str, value: f32) -> Result<(), CoreError> {
+    if !(0.0..=1.0).contains(&value) {
+        return Err(invalid_parameter(map, name, "must lie in [0, 1]"));
+    }
+    Ok(())
 }
 
 /// The map's embedding dimension: the configured `dim` if any (it must equal the encoder's), else

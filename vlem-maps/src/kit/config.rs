@@ -10,7 +10,7 @@
 
 use vlem_core::CoreError;
 
-use super::checks::{invalid_parameter, resolve_dim};
+use super::checks::{invalid_parameter, positive_metres, resolve_dim};
 use crate::storage::Precision;
 
 /// Default [`MapCommon::max_depth`] in metres.
@@ -53,13 +53,7 @@ impl MapCommon {
     /// error) for a `max_depth` that is not a positive number, a `pixel_stride` of 0, or a `dim`
     /// that disagrees with the encoder.
     pub fn validate(&self, map: &str, encoder_dim: Option<usize>) -> Result<usize, CoreError> {
-        if !(self.max_depth.is_finite() && self.max_depth > 0.0) {
-            return Err(invalid_parameter(
-                map,
-                "max_depth",
-                "must be a positive number of metres",
-            ));
-        }
+        positive_metres(map, "max_depth", self.max_depth)?;
         if self.pixel_stride == 0 {
             return Err(invalid_parameter(map, "pixel_stride", "must be at least 1"));
         }

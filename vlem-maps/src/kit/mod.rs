@@ -20,6 +20,9 @@ mod config;
 pub(crate) mod memory;
 mod pixels;
 
-pub use checks::{check_observation, check_snapshot, invalid_parameter, resolve_dim};
+pub use checks::{
+    at_least_one, check_observation, check_snapshot, invalid_parameter, positive_metres,
+    resolve_dim, unit_weight,
+};
 pub use config::{DEFAULT_MAX_DEPTH, DEFAULT_PIXEL_STRIDE, MapCommon};
 pub use pixels::{FramePixels, Pixel, embedding};

@@ -26,7 +26,8 @@ use vlem_core::{
 
 use crate::error::MapError;
 use crate::kit::{
-    FramePixels, Pixel, check_observation, check_snapshot, embedding, invalid_parameter,
+    FramePixels, Pixel, at_least_one, check_observation, check_snapshot, embedding,
+    positive_metres, unit_weight,
 };
 use crate::storage::{EmbeddingStore, fuse_into};
 
@@ -52,19 +53,9 @@ impl PointCloudConfig {
     /// [`MapError::InvalidParameter`] (wrapped as a stage error) for out-of-range values and for a
     /// `dim` that disagrees with the encoder.
     pub fn build(&self, encoder_dim: Option<usize>) -> Result<PointCloudMap, CoreError> {
-        let invalid = |name: &'static str, reason: &str| invalid_parameter(NAME, name, reason);
-        if self.max_points == 0 {
-            return Err(invalid("max_points", "must be at least 1"));
-        }
-        if !(self.max_distance.is_finite() && self.max_distance > 0.0) {
-            return Err(invalid(
-                "max_distance",
-                "must be a positive number of metres",
-            ));
-        }
-        if !(0.0..=1.0).contains(&self.map_weight) {
-            return Err(invalid("map_weight", "must lie in [0, 1]"));
-        }
+        at_least_one(NAME, "max_points", self.max_points)?;
+        positive_metres(NAME, "max_distance", self.max_distance)?;
+        unit_weight(NAME, "map_weight", self.map_weight)?;
         let dim = self.common().validate(NAME, encoder_dim)?;
         Ok(PointCloudMap::new(self.clone(), dim))
     }

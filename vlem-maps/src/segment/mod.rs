@@ -48,7 +48,10 @@ use vlem_core::{
 pub use self::hungarian::hungarian;
 use crate::error::MapError;
 use crate::kit::memory::{btree_bytes, hash_buckets};
-use crate::kit::{FramePixels, check_observation, check_snapshot, invalid_parameter};
+use crate::kit::{
+    FramePixels, at_least_one, check_observation, check_snapshot, invalid_parameter,
+    positive_metres, unit_weight,
+};
 use crate::storage::{EmbeddingStore, fuse_into};
 
 /// The registered name.
@@ -81,25 +84,13 @@ impl SegmentConfig {
     /// [`MapError::InvalidParameter`] (wrapped as a stage error) for out-of-range values and for a
     /// `dim` that disagrees with the encoder.
     pub fn build(&self, encoder_dim: Option<usize>) -> Result<SegmentMap, CoreError> {
-        let invalid = |name: &'static str, reason: &str| invalid_parameter(NAME, name, reason);
-        if self.max_points == 0 {
-            return Err(invalid("max_points", "must be at least 1"));
-        }
-        if !(self.point_spacing.is_finite() && self.point_spacing > 0.0) {
-            return Err(invalid(
-                "point_spacing",
-                "must be a positive number of metres",
-            ));
-        }
+        at_least_one(NAME, "max_points", self.max_points)?;
+        positive_metres(NAME, "point_spacing", self.point_spacing)?;
         if !(self.min_overlap > 0.0 && self.min_overlap <= 1.0) {
-            return Err(invalid("min_overlap", "must lie in (0, 1]"));
+            return Err(invalid_parameter(NAME, "min_overlap", "must lie in (0, 1]"));
         }
-        if self.min_cells == 0 {
-            return Err(invalid("min_cells", "must be at least 1"));
-        }
-        if !(0.0..=1.0).contains(&self.map_weight) {
-            return Err(invalid("map_weight", "must lie in [0, 1]"));
-        }
+        at_least_one(NAME, "min_cells", self.min_cells)?;
+        unit_weight(NAME, "map_weight", self.map_weight)?;
         let dim = self.common().validate(NAME, encoder_dim)?;
         Ok(SegmentMap::new(self.clone(), dim))
     }
