@@ -194,6 +194,16 @@ pub enum CoreError {
         #[source]
         source: Box<dyn std::error::Error + Send + Sync>,
     },
+    /// A live stream refused a frame (out of order, another camera, no pose where poses are
+    /// expected); the stream goes on without it.
+    #[error("frame refused: {reason}")]
+    FrameRefused {
+        /// Why.
+        reason: String,
+    },
+    /// A live stream whose pipeline has stopped reading it (the run ended or a stage failed).
+    #[error("the pipeline is no longer reading this stream (its run has ended)")]
+    StreamClosed,
     /// A worker thread of the pipeline died.
     #[error("pipeline worker failed: {reason}")]
     Worker {

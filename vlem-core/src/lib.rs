@@ -12,6 +12,7 @@ pub mod pipeline;
 pub mod query;
 mod registry;
 mod stage;
+pub mod stream;
 mod traits;
 pub mod types;
 

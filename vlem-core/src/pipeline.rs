@@ -409,7 +409,12 @@ impl Pipeline {
                 ),
             });
         }
-        let total = frames.map_or(source.len(), |n| n.min(source.len()));
+        // A live source's length is unknown: it is read until it ends (or `frames` are read).
+        let live_source = source.is_live();
+        let total = match (live_source, frames) {
+            (true, limit) => limit.unwrap_or(usize::MAX),
+            (false, limit) => limit.map_or(source.len(), |n| n.min(source.len())),
+        };
         let start = Instant::now();
         let (sender, receiver) = sync_channel::<Tracked>(self.config.queue_capacity);
         let config = self.config.clone();
@@ -420,7 +425,7 @@ impl Pipeline {
         let live = &self.live;
         live.update_status(|status| {
             status.state = RunState::Running;
-            status.frames_total = total;
+            status.frames_total = if live_source { 0 } else { total };
             status.frames_tracked = 0;
             status.frames_lost = 0;
             status.frames_skipped = 0;
@@ -469,7 +474,11 @@ impl Pipeline {
         stage_ms.insert("integrate", embedding.integrate);
         stage_ms.retain(|_, t| t.count > 0);
         Ok(RunReport {
-            frames_total: total,
+            frames_total: if live_source {
+                tracking.trajectory.len()
+            } else {
+                total
+            },
             frames_tracked: tracking.trajectory.len(),
             frames_lost: tracking.lost,
             frames_processed: embedding.processed,
@@ -505,8 +514,10 @@ fn track_frames(
     let mut out = TrackingOutcome::default();
     let started = Instant::now();
     let frame_period = config.frame_period();
+    let live_source = source.is_live();
+    let paced = config.mode == Mode::RealTime && !live_source;
     for index in 0..total {
-        if config.mode == Mode::RealTime {
+        if paced {
             // Frames "arrive" at the sensor rate; never faster.
             let due = frame_period.saturating_mul(index as u32);
             if let Some(wait) = due.checked_sub(started.elapsed()) {
@@ -514,8 +525,13 @@ fn track_frames(
             }
         }
         let t = Instant::now();
-        let frame = source.frame(index)?;
-        out.load.add(t);
+        let Some(frame) = source.next_frame(index)? else {
+            break; // The end of a live stream.
+        };
+        if !live_source {
+            // A live source's "load" is the wait for the sensor, not work.
+            out.load.add(t);
+        }
         let t = Instant::now();
         let tracked = tracker.track(&frame)?;
         out.track.add(t);

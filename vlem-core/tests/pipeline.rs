@@ -469,3 +469,155 @@ fn an_observer_sees_every_tracked_and_every_integrated_frame_in_order() {
     );
     assert_eq!(report.frames_processed, 5);
 }
+
+/// A frame of the `Planes` camera at `timestamp`, with or without a pose.
+fn pushed(timestamp: f64, pose: bool) -> Frame {
+    let mut planes = Planes {
+        frames: 1,
+        poses: pose,
+    };
+    let mut frame = planes.frame(0).unwrap();
+    frame.timestamp = timestamp;
+    frame
+}
+
+fn stream_spec(has_poses: bool, capacity: usize) -> vlem_core::stream::StreamSpec {
+    vlem_core::stream::StreamSpec {
+        description: "a test stream".into(),
+        intrinsics: Planes {
+            frames: 0,
+            poses: false,
+        }
+        .intrinsics(),
+        has_poses,
+        capacity,
+    }
+}
+
+#[test]
+fn a_live_stream_is_read_in_order_until_every_sender_finishes() {
+    use vlem_core::stream::frame_stream;
+    let (sender, mut stream) = frame_stream(stream_spec(true, 2)).unwrap();
+    let mut p = Pipeline::new(
+        Box::new(Still {
+            lose_every: 0,
+            needs_poses: true,
+        }),
+        None,
+        Some(Box::new(Fake::new())),
+        Some(recorder(2)),
+        // Real-time mode does not pace a live source: 7 frames at 1 Hz take no 7 s.
+        PipelineConfig {
+            mode: Mode::RealTime,
+            queue_capacity: 8,
+            frame_rate: 1.0,
+        },
+    )
+    .unwrap();
+    let started = std::time::Instant::now();
+    let report = std::thread::scope(|scope| {
+        let feeder = scope.spawn(move || {
+            let second = sender.clone();
+            for i in 0..7 {
+                let which = if i % 2 == 0 { &sender } else { &second };
+                assert_eq!(which.send(pushed(10.0 + i as f64, true)).unwrap(), i);
+            }
+            // Refused frames do not end the stream and take no index.
+            let refused = [
+                sender.send(pushed(12.0, true)).unwrap_err(),
+                sender.send(pushed(20.0, false)).unwrap_err(),
+                sender.send(pushed(f64::NAN, true)).unwrap_err(),
+            ];
+            for e in &refused {
+                assert!(matches!(e, CoreError::FrameRefused { .. }), "{e}");
+            }
+            assert!(
+                refused[0].to_string().contains("not after"),
+                "{}",
+                refused[0]
+            );
+            assert!(refused[1].to_string().contains("no pose"), "{}", refused[1]);
+            sender.finish();
+            second.finish();
+        });
+        let report = p.run(&mut stream, None, &no_progress);
+        feeder.join().unwrap();
+        report
+    })
+    .unwrap();
+    assert!(
+        started.elapsed() < Duration::from_secs(5),
+        "paced like a dataset"
+    );
+    assert_eq!(report.frames_total, 7);
+    assert_eq!(report.frames_tracked, 7);
+    let stamps: Vec<f64> = report.trajectory.iter().map(|t| t.timestamp).collect();
+    assert_eq!(stamps, [10.0, 11.0, 12.0, 13.0, 14.0, 15.0, 16.0]);
+    let indices: Vec<usize> = report.trajectory.iter().map(|t| t.index).collect();
+    assert_eq!(indices, (0..7).collect::<Vec<_>>());
+    assert!(
+        !report.stage_ms.contains_key("load"),
+        "waiting is not loading"
+    );
+    // By index, a stream answers with an error that says why.
+    assert!(
+        stream
+            .frame(0)
+            .unwrap_err()
+            .to_string()
+            .contains("live stream")
+    );
+}
+
+#[test]
+fn a_stream_refuses_another_camera_and_says_when_the_pipeline_has_gone() {
+    use vlem_core::stream::frame_stream;
+    let (sender, stream) = frame_stream(stream_spec(false, 1)).unwrap();
+    let mut other = pushed(1.0, false);
+    other.intrinsics.fx = 11.0;
+    let e = sender.send(other).unwrap_err();
+    assert!(e.to_string().contains("not the stream's"), "{e}");
+    // A full stream hands the frame back with try_send.
+    assert_eq!(sender.try_send(pushed(1.0, false)).unwrap(), Some(0));
+    assert_eq!(sender.try_send(pushed(2.0, false)).unwrap(), None);
+    drop(stream);
+    assert!(matches!(
+        sender.send(pushed(3.0, false)).unwrap_err(),
+        CoreError::StreamClosed
+    ));
+    assert!(frame_stream(stream_spec(false, 0)).is_err());
+}
+
+#[test]
+fn a_run_on_a_stream_ends_when_the_encoder_fails_and_senders_hear_of_it() {
+    use vlem_core::stream::frame_stream;
+    let (sender, mut stream) = frame_stream(stream_spec(false, 1)).unwrap();
+    let failing = Fake {
+        fail_at_call: Some(2),
+        ..Fake::new()
+    };
+    let mut p = Pipeline::new(
+        still(),
+        None,
+        Some(Box::new(failing)),
+        Some(recorder(2)),
+        PipelineConfig::default(),
+    )
+    .unwrap();
+    std::thread::scope(|scope| {
+        let feeder = scope.spawn(move || {
+            // Sends until the pipeline stops reading; never blocks forever.
+            (0..1000)
+                .map(|i| sender.send(pushed(i as f64, false)))
+                .find_map(Result::err)
+        });
+        let e = p.run(&mut stream, None, &no_progress).unwrap_err();
+        assert!(e.to_string().contains("fake encoder failure"), "{e}");
+        drop(stream);
+        let refused = feeder.join().unwrap();
+        assert!(
+            matches!(refused, Some(CoreError::StreamClosed)),
+            "{refused:?}"
+        );
+    });
+}

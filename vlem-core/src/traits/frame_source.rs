@@ -7,12 +7,13 @@
 use crate::error::Result;
 use crate::types::{Frame, Intrinsics};
 
-/// A finite, random-access sequence of frames.
+/// A sequence of frames: a finite, random-access one (a dataset), or a live one whose frames
+/// arrive in order ([`crate::stream::FrameStream`]).
 pub trait FrameSource: Send {
     /// A short description for logs (e.g. "ICL-NUIM folder data/living-room").
     fn describe(&self) -> String;
 
-    /// Number of frames.
+    /// Number of frames; 0 for a live source, whose length is not known in advance.
     fn len(&self) -> usize;
 
     /// Whether the source has no frames.
@@ -31,4 +32,24 @@ pub trait FrameSource: Send {
     /// # Errors
     /// A typed error naming the file that is missing, unreadable or inconsistent.
     fn frame(&mut self, index: usize) -> Result<Frame>;
+
+    /// Whether frames arrive from outside at their own rate (a camera, a robot's topics) rather
+    /// than being read on demand: the pipeline then reads with [`FrameSource::next_frame`] until
+    /// it answers `None`, and does not pace the source in real-time mode.
+    fn is_live(&self) -> bool {
+        false
+    }
+
+    /// The frame at position `index` of the run, or `None` at the end: [`FrameSource::frame`]
+    /// while `index < len()` for a finite source; a live source waits for its next frame.
+    ///
+    /// # Errors
+    /// As [`FrameSource::frame`].
+    fn next_frame(&mut self, index: usize) -> Result<Option<Frame>> {
+        if index < self.len() {
+            self.frame(index).map(Some)
+        } else {
+            Ok(None)
+        }
+    }
 }
