@@ -17,20 +17,10 @@ use clap::Args;
 
 use crate::recording::{Recorder, RecordingTarget};
 
-/// The cause chain on one line, without a backtrace (these are user errors). Library errors that
-/// wrap another one already say its message, so a cause already contained in the line is skipped.
+/// The cause chain on one line, without a backtrace (these are user errors), as
+/// [`vlem_core::message_chain`] writes it for every front-end.
 pub fn one_line(e: &anyhow::Error) -> String {
-    let mut line = String::new();
-    for cause in e.chain() {
-        let text = cause.to_string();
-        if !line.contains(&text) {
-            if !line.is_empty() {
-                line.push_str(": ");
-            }
-            line.push_str(&text);
-        }
-    }
-    line
+    vlem_core::message_chain(e.as_ref())
 }
 
 /// Rerun recording options (the recording needs a build with the `rerun` feature).

@@ -250,5 +250,24 @@ impl CoreError {
     }
 }
 
+/// An error and its causes on one line, as every front-end reports it (the `vlem` command, the
+/// Python package, the query server): causes joined with ": ", skipping a cause whose text the line
+/// already contains (library errors that wrap another one usually say its message).
+pub fn message_chain(error: &(dyn std::error::Error + 'static)) -> String {
+    let mut line = String::new();
+    let mut cause = Some(error);
+    while let Some(e) = cause {
+        let text = e.to_string();
+        if !line.contains(&text) {
+            if !line.is_empty() {
+                line.push_str(": ");
+            }
+            line.push_str(&text);
+        }
+        cause = e.source();
+    }
+    line
+}
+
 /// Result with [`CoreError`].
 pub type Result<T, E = CoreError> = std::result::Result<T, E>;

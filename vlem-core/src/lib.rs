@@ -18,7 +18,7 @@ pub mod types;
 
 pub use config::{Config, StageConfig};
 pub use embeddings::{EmbeddingLayout, NO_SEGMENT, PixelEmbeddings};
-pub use error::{CoreError, Result};
+pub use error::{CoreError, Result, message_chain};
 pub use mapfile::{MapMetadata, MapSnapshot, read_map_file, write_map_file};
 pub use registry::{
     BuildContext, BuildFn, Builder, FeatureHint, Registration, Registry, load_config, parse_params,

@@ -1,0 +1,59 @@
+//! `vlem._vlem`: the Python module of vlem, wrapped by the pure-Python package `vlem`
+//! (`python/vlem/__init__.py`).
+//!
+//! Why it exists: encoder developers and people running comparison studies work in Python. This
+//! crate is a thin front-end over the same library API as the `vlem` command: pipelines from
+//! configs ([`pipeline`]), the live or saved map as numpy arrays and its text queries ([`map`]),
+//! errors as a small exception hierarchy ([`errors`]). Encoders written in Python come from
+//! `vlem-plugin-python`, linked here. Every long call releases the GIL, and no Rust panic crosses
+//! into Python (pyo3 turns one into `pyo3_runtime.PanicException`; the pipeline's own threads
+//! report theirs as errors).
+
+mod arrays;
+mod errors;
+mod json;
+mod map;
+mod pipeline;
+
+// Link the crates whose implementations the registry builds by name.
+use vlem_backends as _;
+use vlem_maps as _;
+use vlem_plugin_colour_names as _;
+use vlem_plugin_python as _;
+use vlem_query as _;
+use vlem_trackers as _;
+
+use pyo3::prelude::*;
+use pyo3::types::PyDict;
+use vlem_core::{Registry, StageKind};
+
+/// Every implementation compiled into this build, as ``vlem plugins`` lists them: one dict per
+/// implementation with ``stage``, ``section`` (its config section), ``name`` and ``description``.
+#[pyfunction]
+fn plugins(py: Python<'_>) -> PyResult<Vec<Bound<'_, PyDict>>> {
+    let registry = Registry::global().map_err(errors::core)?;
+    let mut out = Vec::new();
+    for kind in StageKind::ALL {
+        for r in registry.iter().filter(|r| r.builder.kind() == kind) {
+            let d = PyDict::new(py);
+            d.set_item("stage", kind.to_string())?;
+            d.set_item("section", kind.section())?;
+            d.set_item("name", r.name)?;
+            d.set_item("description", r.description)?;
+            out.push(d);
+        }
+    }
+    Ok(out)
+}
+
+#[pymodule]
+fn _vlem(module: &Bound<'_, PyModule>) -> PyResult<()> {
+    module.add("__version__", env!("CARGO_PKG_VERSION"))?;
+    module.add_class::<pipeline::PyPipeline>()?;
+    module.add_class::<pipeline::PyFeed>()?;
+    module.add_class::<pipeline::PyIntrinsics>()?;
+    module.add_class::<map::PyMap>()?;
+    module.add_function(wrap_pyfunction!(plugins, module)?)?;
+    errors::register(module)?;
+    Ok(())
+}
