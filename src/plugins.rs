@@ -19,5 +19,6 @@
 use vlem_backends as _;
 use vlem_maps as _;
 use vlem_plugin_colour_names as _;
+use vlem_plugin_python as _;
 use vlem_query as _;
 use vlem_trackers as _;

@@ -45,6 +45,8 @@ fn plugins_lists_every_linked_implementation() {
         "graph",
         #[cfg(feature = "point-cloud")]
         "point-cloud",
+        #[cfg(feature = "python")]
+        "python",
         "threshold",
     ] {
         assert!(

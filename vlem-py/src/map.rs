@@ -247,8 +247,9 @@ impl PyMap {
         Ok(out)
     }
 
-    /// Every point's similarity to every text: ``float32[N, len(texts)]``, normalised as the
-    /// heatmaps are (the paper's relative similarity; 1 is the best point).
+    /// Every point's similarity to every text: ``float32[N, len(texts)]``, the paper's
+    /// normalised cosine similarity ``(text . point + 1) / 2`` in ``[0, 1]``, as the heatmaps and
+    /// segmenters use it.
     fn scores<'py>(
         &self,
         py: Python<'py>,

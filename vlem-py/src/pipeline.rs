@@ -442,12 +442,15 @@ fn adapt_progress(progress: &Bound<'_, PyAny>) -> PyResult<Py<PyAny>> {
     ))
 }
 
+/// The thread a feed's run goes on; it hands the pipeline back with the run's outcome.
+type RunThread = JoinHandle<(Pipeline, vlem_core::Result<RunReport>)>;
+
 /// Frames pushed into a running pipeline (from ``Pipeline.start``); a context manager that
 /// finishes the run on leaving the ``with`` block.
 #[pyclass(module = "vlem", name = "Feed", frozen)]
 pub struct PyFeed {
     sender: Mutex<Option<FrameSender>>,
-    run: Mutex<Option<JoinHandle<(Pipeline, vlem_core::Result<RunReport>)>>>,
+    run: Mutex<Option<RunThread>>,
     slot: Slot,
     report: Arc<Mutex<Option<RunReport>>>,
     config: Config,
@@ -496,6 +499,7 @@ impl PyFeed {
     /// Returns the frame's index in the run. With ``block=False`` a full queue drops the frame
     /// and returns ``None`` (count it) instead of waiting for the tracker.
     #[pyo3(signature = (colour, depth, *, timestamp = None, pose = None, depth_scale = 1000.0, block = true))]
+    #[allow(clippy::too_many_arguments, reason = "Feed.push's keyword arguments")]
     fn push(
         &self,
         py: Python<'_>,
@@ -517,7 +521,7 @@ impl PyFeed {
         let depth_image = if depth
             .getattr("dtype")
             .and_then(|d| d.str())
-            .is_ok_and(|d| d.to_string() == "uint16")
+            .is_ok_and(|d| d == "uint16")
         {
             if !(depth_scale.is_finite() && depth_scale > 0.0) {
                 return Err(PyValueError::new_err(format!(

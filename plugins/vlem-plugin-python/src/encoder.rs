@@ -40,11 +40,6 @@ pub struct PythonEncoderConfig {
 #[derive(Debug, thiserror::Error)]
 #[non_exhaustive]
 pub enum PythonEncoderError {
-    /// Neither or both of `module` and `path`.
-    #[error(
-        "give the encoder's code as either `module = \"package.module\"` or `path = \"file.py\"`{0}"
-    )]
-    Source(&'static str),
     /// The module or file could not be imported, or has no such class.
     #[error("cannot load the Python encoder {what}: {message}")]
     Load {
@@ -158,6 +153,10 @@ fn invalid_params(message: String) -> CoreError {
     }
 }
 
+/// What `module` and `path` are for.
+const SOURCE: &str =
+    "give the encoder's code as either `module = \"package.module\"` or `path = \"file.py\"`";
+
 /// Builds the encoder from its `[encoder]` parameters (the registered build function): imports
 /// the module or file, constructs the class with `params`, and reads `dim` and `needs_regions`.
 ///
@@ -170,8 +169,8 @@ pub fn build(params: &toml::Table, ctx: &BuildContext) -> vlem_core::Result<Box<
     let source = match (&config.module, &config.path) {
         (Some(module), None) => Source::Module(module.clone()),
         (None, Some(path)) => Source::File(ctx.resolve(path)),
-        (None, None) => return Err(stage_error(PythonEncoderError::Source(""))),
-        (Some(_), Some(_)) => return Err(stage_error(PythonEncoderError::Source(", not both"))),
+        (None, None) => return Err(invalid_params(SOURCE.into())),
+        (Some(_), Some(_)) => return Err(invalid_params(format!("{SOURCE}, not both"))),
     };
     if let Source::File(path) = &source
         && !path.is_file()

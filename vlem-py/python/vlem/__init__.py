@@ -7,16 +7,15 @@ This package is a thin front-end over the same Rust library as the ``vlem`` comm
 >>> import vlem
 >>> pipeline = vlem.Pipeline("configs/demo.toml")      # a TOML file, TOML text or a dict
 >>> report = pipeline.run("data/living-room")          # blocking; releases the GIL
->>> answer = pipeline.map.query(["white wall"])[0]
->>> points = pipeline.map.points[answer["indices"][0]] # float32[n, 3], the best point set
+>>> answer = pipeline.map.query(["white wall"])
+>>> best = answer["queries"][0]["indices"][0]          # int64 indices of the best point set
+>>> points = pipeline.map.points[best]                 # float32[n, 3]
 
 See ``help(vlem.Pipeline)``, ``help(vlem.Map)`` and ``help(vlem.Feed)``.
 """
 
 from dataclasses import dataclass
 from typing import Any, Optional
-
-import numpy as np
 
 from ._vlem import (  # noqa: F401  (re-exported)
     ConfigError,
@@ -45,13 +44,11 @@ __all__ = [
     "PatchGrid",
     "Pipeline",
     "QueryError",
-    "Region",
     "Segments",
     "StageError",
     "VlemError",
     "__version__",
     "plugins",
-    "study_frame",
 ]
 
 
@@ -80,32 +77,9 @@ class PatchGrid:
     patch_size: Optional[int] = None
 
 
-@dataclass
-class Region:
-    """A region from the proposer, as a Python encoder with ``needs_regions`` receives it.
-
-    ``bbox``: ``(x, y, width, height)`` in pixels; ``mask``: ``bool[height, width]`` inside the box.
-    """
-
-    bbox: tuple
-    mask: Any
-
-
-def study_frame(rows):
-    """A list of dicts (e.g. a study's table) as a pandas DataFrame, or the list itself when pandas
-    is not installed."""
-    try:
-        import pandas
-    except ImportError:
-        return rows
-    return pandas.DataFrame(rows)
-
-
 def _progress_adapter(progress):
     """Turns ``progress`` (a callable taking an event dict, or a tqdm-like object with
     ``update``) into the callable the Rust side calls once per event."""
-    if progress is None or callable(progress) and not hasattr(progress, "update"):
-        return progress
     if hasattr(progress, "update"):
         bar = progress
 
@@ -113,11 +87,7 @@ def _progress_adapter(progress):
             if event["event"] == "tracked":
                 bar.update(1)
             elif hasattr(bar, "set_postfix"):
-                bar.set_postfix(integrated=event.get("integrated"), points=event.get("map_len"))
+                bar.set_postfix(points=event.get("map_len"))
 
         return on_event
-    raise TypeError("progress must be a callable taking an event dict, or a tqdm-like object with update()")
-
-
-def _numpy():
-    return np
+    return progress
