@@ -109,6 +109,17 @@ fn lock<T>(mutex: &Mutex<T>) -> std::sync::MutexGuard<'_, T> {
     mutex.lock().unwrap_or_else(PoisonError::into_inner)
 }
 
+/// The pipeline, unless a run on another Python thread holds it.
+fn busy(slot: &Slot) -> PyResult<std::sync::MutexGuard<'_, Option<Pipeline>>> {
+    match slot.try_lock() {
+        Ok(guard) => Ok(guard),
+        Err(std::sync::TryLockError::Poisoned(poisoned)) => Ok(poisoned.into_inner()),
+        Err(std::sync::TryLockError::WouldBlock) => Err(PyRuntimeError::new_err(
+            "the pipeline is running (Pipeline.run on another thread); wait for that run to end",
+        )),
+    }
+}
+
 /// The config and build context `config` names.
 fn load_config(
     config: &Bound<'_, PyAny>,
@@ -306,7 +317,9 @@ impl PyPipeline {
             bar.setattr("total", source.len())?;
         }
         let progress = ProgressCallback::new(progress.map(|p| adapt_progress(&p)).transpose()?);
-        let mut slot = lock(&self.pipeline);
+        // Never wait for the mutex with the GIL held: the run holding it may need the GIL (a
+        // Python encoder, a progress callback).
+        let mut slot = busy(&self.pipeline)?;
         let pipeline = slot.as_mut().ok_or_else(|| {
             PyRuntimeError::new_err(
                 "the pipeline is being fed frames (Pipeline.start); finish the feed first",
@@ -337,7 +350,7 @@ impl PyPipeline {
         capacity: usize,
         progress: Option<Bound<'_, PyAny>>,
     ) -> PyResult<PyFeed> {
-        let mut pipeline = lock(&self.pipeline).take().ok_or_else(|| {
+        let mut pipeline = busy(&self.pipeline)?.take().ok_or_else(|| {
             PyRuntimeError::new_err(
                 "the pipeline is already being fed frames; finish that feed first",
             )
