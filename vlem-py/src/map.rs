@@ -42,11 +42,16 @@ pub struct PyMap {
 }
 
 impl PyMap {
-    /// The live map of a pipeline.
-    pub fn live(live: LiveMap) -> Self {
-        Self {
-            source: Source::Live(live),
+    /// The live map of a pipeline; a `ConfigError` for a tracking-only pipeline.
+    pub fn live(live: &LiveMap) -> PyResult<Self> {
+        if !live.has_map() {
+            return Err(errors::ConfigError::new_err(
+                "the config has no [map] section: this pipeline only tracks",
+            ));
         }
+        Ok(Self {
+            source: Source::Live(live.clone()),
+        })
     }
 
     /// A consistent copy of the content: points, colours and embeddings of one integrated-frame

@@ -401,12 +401,7 @@ impl PyPipeline {
     /// The map (live: reads see whole integrated frames, also while a run goes on).
     #[getter]
     fn map(&self) -> PyResult<PyMap> {
-        if !self.live.has_map() {
-            return Err(errors::ConfigError::new_err(
-                "the config has no [map] section: this pipeline only tracks",
-            ));
-        }
-        Ok(PyMap::live(self.live.clone()))
+        PyMap::live(&self.live)
     }
 
     /// Where the current or last run is: counters (frames tracked, integrated, skipped, lost),
@@ -600,12 +595,7 @@ impl PyFeed {
     /// The map being built.
     #[getter]
     fn map(&self) -> PyResult<PyMap> {
-        if !self.live.has_map() {
-            return Err(errors::ConfigError::new_err(
-                "the config has no [map] section: this pipeline only tracks",
-            ));
-        }
-        Ok(PyMap::live(self.live.clone()))
+        PyMap::live(&self.live)
     }
 
     /// The run's counters and latest pose.
