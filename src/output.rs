@@ -1,52 +1,14 @@
 //! Files the `vlem` command writes (statistics JSON, the dense colour model as PLY), each written
-//! atomically, and the process's memory for reports.
+//! atomically.
 
-use std::io::Write;
 use std::path::Path;
 
-use anyhow::{Context, Result};
+use anyhow::Result;
 
-/// Writes `bytes` to `path` through a temporary file in the same directory and a rename, so an
-/// interrupted run never leaves a half-written file.
+/// Writes `bytes` to `path` atomically ([`vlem_core::files::write_atomically`]), for the
+/// command's `anyhow` call sites.
 pub fn write_atomically(path: &Path, bytes: &[u8]) -> Result<()> {
-    let dir = path
-        .parent()
-        .filter(|p| !p.as_os_str().is_empty())
-        .unwrap_or(Path::new("."));
-    let name = path
-        .file_name()
-        .map(|n| n.to_string_lossy().into_owned())
-        .unwrap_or_default();
-    let tmp = dir.join(format!(".{name}.tmp-{}", std::process::id()));
-    let result = (|| -> Result<()> {
-        let mut file = std::fs::File::create(&tmp)?;
-        file.write_all(bytes)?;
-        file.sync_all()?;
-        std::fs::rename(&tmp, path)?;
-        Ok(())
-    })();
-    if result.is_err() {
-        let _ = std::fs::remove_file(&tmp);
-    }
-    result.with_context(|| format!("cannot write {}", path.display()))
-}
-
-/// Peak resident memory of this process in bytes (Linux `VmHWM`), `None` where unavailable.
-pub fn peak_resident_bytes() -> Option<u64> {
-    proc_status_bytes("VmHWM:")
-}
-
-/// Current resident memory of this process in bytes (Linux `VmRSS`), `None` where unavailable.
-pub fn resident_bytes() -> Option<u64> {
-    proc_status_bytes("VmRSS:")
-}
-
-/// A `kB` field of `/proc/self/status`, in bytes.
-fn proc_status_bytes(field: &str) -> Option<u64> {
-    let status = std::fs::read_to_string("/proc/self/status").ok()?;
-    let line = status.lines().find(|l| l.starts_with(field))?;
-    let kib: u64 = line.split_whitespace().nth(1)?.parse().ok()?;
-    Some(kib * 1024)
+    Ok(vlem_core::files::write_atomically(path, bytes)?)
 }
 
 /// Binary little-endian PLY of a vertex-coloured triangle mesh (a point set when it has no

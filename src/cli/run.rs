@@ -301,7 +301,7 @@ fn write_outputs(
     let stats = report.stats(
         config.pipeline.mode,
         map.as_deref(),
-        output::peak_resident_bytes(),
+        vlem_core::files::peak_resident_bytes(),
     );
     let json = serde_json::to_string(&stats).context("cannot encode stats.json")?;
     output::write_atomically(&out.join("stats.json"), json.as_bytes())?;

@@ -234,7 +234,7 @@ pub fn execute(args: &SoakArgs) -> Result<()> {
     let sample = |frame: usize, map: Option<&dyn EmbeddingMap>| -> Result<Sample> {
         Ok(Sample {
             frame,
-            rss_bytes: output::resident_bytes()
+            rss_bytes: vlem_core::files::resident_bytes()
                 .context("vlem soak reads resident memory from /proc/self/status (Linux only)")?,
             map_elements: map.map_or(0, |m| m.len()),
             map_bytes: map.map_or(0, |m| m.memory_bytes()),
@@ -335,7 +335,7 @@ pub fn execute(args: &SoakArgs) -> Result<()> {
             "min_after_warmup": verdict.rss_range.map(|r| r.0),
             "max_after_warmup": verdict.rss_range.map(|r| r.1),
             "end": last.map(|s| s.rss_bytes),
-            "peak": output::peak_resident_bytes(),
+            "peak": vlem_core::files::peak_resident_bytes(),
         },
         "map": {
             "kind": map_name,

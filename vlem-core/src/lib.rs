@@ -6,6 +6,7 @@
 pub mod config;
 pub mod embeddings;
 mod error;
+pub mod files;
 pub mod live;
 pub mod mapfile;
 pub mod pipeline;

@@ -166,7 +166,7 @@ static SAVES: AtomicU64 = AtomicU64::new(0);
 /// The name differs between threads (counter) and processes (pid; the clock and `O_EXCL` cover
 /// processes of other pid namespaces sharing the directory), and a name that exists already,
 /// e.g. left by a killed save, is skipped rather than reused.
-fn create_temp_file(dir: &Path, file_name: &str) -> Result<(PathBuf, File)> {
+pub(crate) fn create_temp_file(dir: &Path, file_name: &str) -> Result<(PathBuf, File)> {
     let pid = std::process::id();
     let mut last = None;
     for _ in 0..64 {

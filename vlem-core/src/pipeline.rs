@@ -14,6 +14,7 @@
 
 use std::collections::BTreeMap;
 use std::sync::Arc;
+use std::sync::atomic::{AtomicBool, Ordering as AtomicOrdering};
 use std::sync::mpsc::{Receiver, SyncSender, TrySendError, sync_channel};
 use std::time::Instant;
 
@@ -39,6 +40,29 @@ pub struct Pipeline {
     encoder: Option<Arc<dyn Encoder>>,
     live: LiveMap,
     config: PipelineConfig,
+    stop: StopHandle,
+}
+
+/// Ends a run of its pipeline early from another thread (a Ctrl-C handler, a front-end's
+/// cancel button): the run reads no further frame, lets the embedding stage finish the frames
+/// already tracked, and returns its report with [`RunReport::stopped`] set. The map up to the last
+/// integrated frame stays, as after any run.
+#[derive(Clone, Debug, Default)]
+pub struct StopHandle(Arc<AtomicBool>);
+
+impl StopHandle {
+    /// Asks the current run to stop (a run clears the request when it starts).
+    pub fn stop(&self) {
+        self.0.store(true, AtomicOrdering::Relaxed);
+    }
+
+    fn requested(&self) -> bool {
+        self.0.load(AtomicOrdering::Relaxed)
+    }
+
+    fn clear(&self) {
+        self.0.store(false, AtomicOrdering::Relaxed);
+    }
 }
 
 /// Something that happened, for progress displays.
@@ -113,6 +137,8 @@ pub struct RunReport {
     pub stage_ms: BTreeMap<&'static str, StageTiming>,
     /// Wall time of the whole run in seconds.
     pub wall_seconds: f64,
+    /// Whether the run ended early because its [`StopHandle`] was used.
+    pub stopped: bool,
     /// The trajectory, one entry per tracked frame.
     #[serde(skip)]
     pub trajectory: Vec<TrajectoryEntry>,
@@ -180,6 +206,8 @@ pub struct RunStats {
     pub mean_ms: BTreeMap<&'static str, f64>,
     /// Wall time of the run in seconds.
     pub wall_seconds: f64,
+    /// Whether the run was stopped early ([`StopHandle`]).
+    pub stopped: bool,
     /// The map after the run, when there is one.
     pub map: Option<MapStats>,
     /// Peak resident memory of the process, where the platform reports it.
@@ -215,6 +243,7 @@ impl RunReport {
             mode,
             mean_ms: self.stage_ms.iter().map(|(k, t)| (*k, t.mean_ms)).collect(),
             wall_seconds: self.wall_seconds,
+            stopped: self.stopped,
             map: map.map(MapStats::of),
             peak_resident_bytes,
         }
@@ -247,6 +276,7 @@ struct Tracked {
 #[derive(Default)]
 struct TrackingOutcome {
     trajectory: Vec<TrajectoryEntry>,
+    stopped: bool,
     lost: usize,
     skipped: usize,
     load: StageTiming,
@@ -348,7 +378,13 @@ impl Pipeline {
             encoder,
             live,
             config,
+            stop: StopHandle::default(),
         })
+    }
+
+    /// A handle that stops a run of this pipeline from another thread.
+    pub fn stop_handle(&self) -> StopHandle {
+        self.stop.clone()
     }
 
     /// The map, if the config has one, read-locked: hold it briefly while a run is in progress on
@@ -423,6 +459,8 @@ impl Pipeline {
         let proposer = self.proposer.as_deref();
         let encoder = self.encoder.as_deref();
         let live = &self.live;
+        let stop = &self.stop;
+        stop.clear();
         live.update_status(|status| {
             status.state = RunState::Running;
             status.frames_total = if live_source { 0 } else { total };
@@ -435,6 +473,7 @@ impl Pipeline {
             progress,
             observer,
             live,
+            stop,
         };
         let (tracking, embedding) = std::thread::scope(|scope| {
             let tracking = scope.spawn(move || {
@@ -485,17 +524,20 @@ impl Pipeline {
             frames_skipped: tracking.skipped,
             stage_ms,
             wall_seconds: start.elapsed().as_secs_f64(),
+            stopped: tracking.stopped,
             trajectory: tracking.trajectory,
         })
     }
 }
 
-/// Who hears about each frame: the progress callback, the observer and the live map's status.
+/// Who hears about each frame (the progress callback, the observer and the live map's status)
+/// and who may end the run early (the stop handle).
 #[derive(Clone, Copy)]
 struct Watchers<'a> {
     progress: &'a (dyn Fn(Progress) + Sync),
     observer: &'a dyn RunObserver,
     live: &'a LiveMap,
+    stop: &'a StopHandle,
 }
 
 fn track_frames(
@@ -509,6 +551,7 @@ fn track_frames(
         progress,
         observer,
         live,
+        stop,
     }: Watchers<'_>,
 ) -> Result<TrackingOutcome> {
     let mut out = TrackingOutcome::default();
@@ -517,6 +560,10 @@ fn track_frames(
     let live_source = source.is_live();
     let paced = config.mode == Mode::RealTime && !live_source;
     for index in 0..total {
+        if stop.requested() {
+            out.stopped = true;
+            break;
+        }
         if paced {
             // Frames "arrive" at the sensor rate; never faster.
             let due = frame_period.saturating_mul(index as u32);
@@ -601,6 +648,7 @@ fn embed_frames(
         progress,
         observer,
         live,
+        ..
     }: Watchers<'_>,
 ) -> Result<EmbeddingOutcome> {
     let mut out = EmbeddingOutcome::default();

@@ -201,6 +201,49 @@ fn offline_mode_integrates_every_frame_in_order() {
 }
 
 #[test]
+fn a_stop_handle_ends_the_run_after_the_frame_in_hand_and_keeps_the_map() {
+    let mut p = Pipeline::new(
+        still(),
+        None,
+        Some(Box::new(Fake::new())),
+        Some(recorder(2)),
+        PipelineConfig::default(),
+    )
+    .unwrap();
+    let mut source = Planes {
+        frames: 12,
+        poses: true,
+    };
+    let stop = p.stop_handle();
+    // Asked while frame 3 is tracked (from the tracking thread, as a signal handler would).
+    let on_progress = |event: Progress| {
+        if event == (Progress::Tracked { index: 3 }) {
+            stop.stop();
+        }
+    };
+    let report = p.run(&mut source, None, &on_progress).unwrap();
+    assert!(report.stopped);
+    assert_eq!(
+        report.frames_tracked, 4,
+        "no frame is read after the request"
+    );
+    assert_eq!(
+        report.frames_processed, 4,
+        "the frames already tracked are integrated"
+    );
+    assert_eq!(p.map().unwrap().len(), 4);
+    assert!(
+        report
+            .stats(vlem_core::config::Mode::Offline, None, None)
+            .stopped
+    );
+    // The next run starts afresh.
+    let report = p.run(&mut source, None, &no_progress).unwrap();
+    assert!(!report.stopped);
+    assert_eq!(report.frames_tracked, 12);
+}
+
+#[test]
 fn real_time_mode_skips_frames_while_the_encoder_is_busy() {
     let slow = Fake {
         delay: Duration::from_millis(150),
