@@ -43,9 +43,13 @@ enum Command {
     /// Soak test: map many synthetic frames under a small map budget and check that resident
     /// memory stays flat; writes OUT/soak.json and OUT/soak-samples.csv.
     Soak(cli::soak::SoakArgs),
-    /// Run a comparison study (maps × encoders × trackers × sequences): one `vlem run` and one
-    /// `vlem eval semseg3d` per cell, then OUT/study.csv and a plot of mIoU against memory.
+    /// Run a comparison study (maps × encoders × trackers × sequences): each cell mapped and
+    /// evaluated (semseg3d) in a process of its own, then OUT/study.csv and a plot of mIoU
+    /// against memory.
     Study(cli::study::StudyArgs),
+    /// One cell of a study, in this process (what `vlem study` runs per cell).
+    #[command(hide = true)]
+    StudyCell(cli::study::StudyCellArgs),
     /// Run the embedded default: the committed living-room frames, pseudo ground-truth poses, the
     /// point-cloud map, the colour-names encoder and two queries.
     Demo(cli::run::DemoArgs),
@@ -59,6 +63,7 @@ fn main() -> std::process::ExitCode {
         Command::Plugins => cli::plugins::execute(),
         Command::Soak(args) => cli::soak::execute(&args),
         Command::Study(args) => cli::study::execute(&args),
+        Command::StudyCell(args) => cli::study::execute_cell(&args),
         Command::Demo(args) => cli::run::demo(&args),
     };
     match outcome {

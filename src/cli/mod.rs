@@ -8,7 +8,6 @@ pub mod run;
 pub mod soak;
 pub mod study;
 mod study_plot;
-mod study_result;
 
 use std::path::PathBuf;
 

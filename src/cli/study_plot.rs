@@ -11,7 +11,7 @@ use anyhow::{Result, anyhow};
 use plotters::coord::Shift;
 use plotters::prelude::*;
 
-use super::study_result::CellResult;
+use vlem_eval::study::CellResult;
 
 const SIZE: (u32, u32) = (900, 600);
 const FONT: &str = "sans-serif";

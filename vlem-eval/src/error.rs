@@ -45,10 +45,10 @@ pub enum EvalError {
         /// How many whitespace-separated fields that line has.
         fields: usize,
     },
-    /// A trajectory file that the dataset readers refuse (malformed line, not a rotation, …); the
-    /// reader's error names the file and line.
+    /// A trajectory file or dataset that the dataset readers refuse (malformed line, not a
+    /// rotation, a missing folder, …); the reader's error names the file and line.
     #[error(transparent)]
-    Trajectory(#[from] DatasetError),
+    Dataset(#[from] DatasetError),
     /// Two pose lists that should be paired element by element have different lengths.
     #[error("{estimate} estimated poses but {reference} reference poses; pass associated pairs")]
     LengthMismatch {
@@ -136,6 +136,61 @@ pub enum EvalError {
     /// embeddings, …); its message says what failed.
     #[error(transparent)]
     Core(#[from] vlem_core::CoreError),
+    /// An error answering a query of the map (e.g. building the encoder a map file names).
+    #[error(transparent)]
+    Query(#[from] vlem_query::QueryError),
+    /// A prompts table (class names to query texts) that cannot be used.
+    #[error("prompts {}: {reason}", path.display())]
+    Prompts {
+        /// The prompts file.
+        path: PathBuf,
+        /// What is wrong with it.
+        reason: String,
+    },
+    /// A class whose name (or prompt) the encoder cannot embed.
+    #[error(
+        "cannot embed the class \"{class}\" (query \"{text}\") with encoder `{encoder}`: {source}; \
+         give a text the encoder knows as a prompt (--prompts FILE, a JSON object such as \
+         {{\"{class}\": \"white\"}})"
+    )]
+    ClassText {
+        /// The class.
+        class: String,
+        /// The text queried for it.
+        text: String,
+        /// The encoder.
+        encoder: String,
+        /// Why the encoder refused (boxed: it is large and rare).
+        #[source]
+        source: Box<vlem_core::CoreError>,
+    },
+    /// The encoder failed on a frame being evaluated.
+    #[error("encoder `{encoder}` on frame {frame}: {source}")]
+    Encode {
+        /// The encoder.
+        encoder: String,
+        /// The frame index.
+        frame: usize,
+        /// Its error (boxed: it is large and rare).
+        #[source]
+        source: Box<vlem_core::CoreError>,
+    },
+    /// A config, map or dataset that does not fit the evaluation asked for (no encoder, no
+    /// frames, dimensions that differ); the message says what is missing.
+    #[error("{message}")]
+    Setup {
+        /// What is missing or does not fit.
+        message: String,
+    },
+    /// A study file that cannot be run: the message says what is wrong (and names the cell when
+    /// one cell's config is invalid).
+    #[error("study file {}: {message}", path.display())]
+    Study {
+        /// The study file.
+        path: PathBuf,
+        /// What is wrong.
+        message: String,
+    },
     /// Input that has no unique answer (e.g. a scale for positions that all coincide).
     #[error("cannot compute {what}: {reason}")]
     Degenerate {

@@ -4,10 +4,16 @@
 //!   relative pose error of an estimated camera trajectory against a reference.
 //! - [`semseg`]: open-vocabulary semantic segmentation in 3D and 2D, under the paper's protocol
 //!   (IoU averaged over similarity thresholds) and RayFronts' (argmax over class prompts).
+//! - [`report`]: whole evaluations from files and configs to one serialisable report, as the
+//!   `vlem eval` command, the study runner and the Python package run them.
+//! - [`study`]: comparison studies (maps × encoders × trackers × sequences), one child process
+//!   per cell, results as a table.
 //! - [`error`]: the crate's one error type, [`EvalError`].
 
 mod error;
+pub mod report;
 pub mod semseg;
+pub mod study;
 pub mod trajectory;
 
 pub use error::{EvalError, Result};

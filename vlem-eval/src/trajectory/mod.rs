@@ -121,7 +121,7 @@ impl Trajectory {
 ///
 /// # Errors
 /// [`EvalError::MissingFile`] / [`EvalError::Io`] when the file cannot be read,
-/// [`EvalError::UnknownFormat`] as above, and [`EvalError::Trajectory`] with the reader's error
+/// [`EvalError::UnknownFormat`] as above, and [`EvalError::Dataset`] with the reader's error
 /// (file and line) for a malformed file.
 pub fn read_trajectory(path: &Path, role: &str) -> Result<Trajectory> {
     let text = std::fs::read_to_string(path).map_err(|source| {
