@@ -54,6 +54,14 @@ pyo3::create_exception!(
      dimension is not the map's."
 );
 
+pyo3::create_exception!(
+    vlem,
+    EvalError,
+    VlemError,
+    "An evaluation or study that cannot run: a study file's mistakes, prompts that are no class, \
+     a class the encoder cannot embed, too few poses to compare, a map and encoder that differ."
+);
+
 /// Which exception class a core error is.
 fn class_of(error: &CoreError) -> fn(String) -> PyErr {
     match error {
@@ -118,6 +126,31 @@ pub fn dataset(error: vlem_datasets::DatasetError) -> PyErr {
     raise(&error, DatasetError::new_err)
 }
 
+/// An evaluation error as a Python exception: the library error inside decides the class where
+/// there is one (a missing model file stays an encoder error, a missing dataset a dataset error).
+pub fn eval(error: vlem_eval::EvalError) -> PyErr {
+    use vlem_eval::EvalError as E;
+    let class: fn(String) -> PyErr = match &error {
+        E::Core(inner) => class_of(inner),
+        E::Dataset(_) | E::MissingLabels { .. } | E::MissingPose { .. } => DatasetError::new_err,
+        E::Query(inner) => {
+            match std::error::Error::source(inner).and_then(|s| s.downcast_ref::<CoreError>()) {
+                Some(core @ CoreError::Stage { .. }) => class_of(core),
+                _ => QueryError::new_err,
+            }
+        }
+        E::Encode { .. } => EncoderError::new_err,
+        E::MissingFile { .. } => PyFileNotFoundError::new_err,
+        E::Io { source, .. } if source.kind() == std::io::ErrorKind::NotFound => {
+            PyFileNotFoundError::new_err
+        }
+        E::Io { .. } => PyOSError::new_err,
+        E::InvalidParameter { .. } => pyo3::exceptions::PyValueError::new_err,
+        _ => EvalError::new_err,
+    };
+    raise(&error, class)
+}
+
 /// Registers the exception classes on the module.
 pub fn register(module: &Bound<'_, PyModule>) -> PyResult<()> {
     let py = module.py();
@@ -128,5 +161,6 @@ pub fn register(module: &Bound<'_, PyModule>) -> PyResult<()> {
     module.add("EncoderError", py.get_type::<EncoderError>())?;
     module.add("MapFileError", py.get_type::<MapFileError>())?;
     module.add("QueryError", py.get_type::<QueryError>())?;
+    module.add("EvalError", py.get_type::<EvalError>())?;
     Ok(())
 }

@@ -4,6 +4,7 @@
 //! Why it exists: encoder developers and people running comparison studies work in Python. This
 //! crate is a thin front-end over the same library API as the `vlem` command: pipelines from
 //! configs ([`pipeline`]), the live or saved map as numpy arrays and its text queries ([`map`]),
+//! evaluations and studies with their reports as dicts ([`eval`]),
 //! errors as a small exception hierarchy ([`errors`]). Encoders written in Python come from
 //! `vlem-plugin-python`, linked here. Every long call releases the GIL, and no Rust panic crosses
 //! into Python (pyo3 turns one into `pyo3_runtime.PanicException`; the pipeline's own threads
@@ -11,6 +12,7 @@
 
 mod arrays;
 mod errors;
+mod eval;
 mod json;
 mod map;
 mod pipeline;
@@ -54,6 +56,13 @@ fn _vlem(module: &Bound<'_, PyModule>) -> PyResult<()> {
     module.add_class::<pipeline::PyIntrinsics>()?;
     module.add_class::<map::PyMap>()?;
     module.add_function(wrap_pyfunction!(plugins, module)?)?;
+    module.add_function(wrap_pyfunction!(eval::eval_trajectory, module)?)?;
+    module.add_function(wrap_pyfunction!(eval::eval_semseg3d, module)?)?;
+    module.add_function(wrap_pyfunction!(eval::eval_semseg2d, module)?)?;
+    module.add_function(wrap_pyfunction!(eval::study_cells, module)?)?;
+    module.add_function(wrap_pyfunction!(eval::class_names, module)?)?;
+    module.add_function(wrap_pyfunction!(eval::_study, module)?)?;
+    module.add_function(wrap_pyfunction!(eval::_study_cell, module)?)?;
     errors::register(module)?;
     Ok(())
 }

@@ -121,7 +121,7 @@ fn busy(slot: &Slot) -> PyResult<std::sync::MutexGuard<'_, Option<Pipeline>>> {
 }
 
 /// The config and build context `config` names.
-fn load_config(
+pub(crate) fn load_config(
     config: &Bound<'_, PyAny>,
     config_dir: Option<PathBuf>,
 ) -> PyResult<(Config, BuildContext)> {
@@ -226,6 +226,47 @@ fn report_dict<'py>(
     to_python(py, &stats)
 }
 
+/// Runs `pipeline` over `source` on a worker thread while this thread, the one that called into
+/// Python, waits without the GIL and looks at Python's signal handlers ten times a second: the
+/// run is stopped at the next frame when one raises (Ctrl-C's `KeyboardInterrupt`), which is
+/// returned beside the run's own outcome.
+fn run_interruptible(
+    py: Python<'_>,
+    pipeline: &mut Pipeline,
+    source: &mut dyn vlem_core::FrameSource,
+    progress: &ProgressCallback,
+) -> PyResult<(vlem_core::Result<RunReport>, Option<PyErr>)> {
+    let stop = pipeline.stop_handle();
+    std::thread::scope(|scope| {
+        let (done, finished) = std::sync::mpsc::channel::<()>();
+        // In a mutex only because the wait runs in `detach`, whose closure must be `Send`.
+        let finished = Mutex::new(finished);
+        let worker = scope.spawn(move || {
+            let outcome = pipeline.run(source, None, &|e| progress.call(e));
+            let _ = done.send(());
+            outcome
+        });
+        let mut interrupt = None;
+        loop {
+            let waited =
+                py.detach(|| lock(&finished).recv_timeout(std::time::Duration::from_millis(100)));
+            if !matches!(waited, Err(std::sync::mpsc::RecvTimeoutError::Timeout)) {
+                break; // Finished, or the worker ended without saying so.
+            }
+            if interrupt.is_none()
+                && let Err(e) = py.check_signals()
+            {
+                stop.stop();
+                interrupt = Some(e);
+            }
+        }
+        let outcome = worker
+            .join()
+            .map_err(|_| PyRuntimeError::new_err("the pipeline's run thread panicked"))?;
+        Ok((outcome, interrupt))
+    })
+}
+
 /// A pose from a 4x4 camera-to-world matrix.
 fn pose_from(value: &Bound<'_, PyAny>) -> PyResult<vlem_core::Pose> {
     let np = value.py().import("numpy")?;
@@ -291,7 +332,8 @@ impl PyPipeline {
     /// Runs the pipeline over a dataset folder (``dataset``, default the config's ``[dataset]
     /// path``), blocking until it ends, and returns the run's statistics (``stats.json``).
     ///
-    /// The GIL is released meanwhile: other threads query ``self.map``. ``progress`` is a
+    /// The GIL is released meanwhile: other threads query ``self.map``. Ctrl-C stops the run at
+    /// the next frame and raises ``KeyboardInterrupt``; the map up to then stays. ``progress`` is a
     /// callable receiving one dict per event (``{"event": "tracked" | "integrated" | "skipped",
     /// "index": ..., "map_len": ...}``) or a tqdm-like object (``update(1)`` per tracked frame).
     #[pyo3(signature = (dataset = None, *, max_frames = None, progress = None))]
@@ -325,12 +367,15 @@ impl PyPipeline {
                 "the pipeline is being fed frames (Pipeline.start); finish the feed first",
             )
         })?;
-        let report = py
-            .detach(|| pipeline.run(source.as_mut(), None, &|e| progress.call(e)))
-            .map_err(errors::core)?;
-        progress.check()?;
+        let (outcome, interrupt) = run_interruptible(py, pipeline, source.as_mut(), &progress)?;
+        let report = outcome.map_err(errors::core)?;
         let out = report_dict(py, pipeline, &self.config, &report)?;
         *lock(&self.report) = Some(report);
+        // Ctrl-C (or another signal handler raising) ends the run early; the map stays.
+        if let Some(e) = interrupt {
+            return Err(e);
+        }
+        progress.check()?;
         Ok(out)
     }
 

@@ -11,16 +11,24 @@ This package is a thin front-end over the same Rust library as the ``vlem`` comm
 >>> best = answer["queries"][0]["indices"][0]          # int64 indices of the best point set
 >>> points = pipeline.map.points[best]                 # float32[n, 3]
 
-See ``help(vlem.Pipeline)``, ``help(vlem.Map)`` and ``help(vlem.Feed)``.
+Evaluations (``vlem.eval_trajectory``, ``vlem.eval_semseg3d``, ``vlem.eval_semseg2d``) return
+the ``vlem eval ... --json`` reports as dicts; ``vlem.study`` runs a comparison study and returns
+its table (``.to_dataframe()`` with pandas installed).
+
+See ``help(vlem.Pipeline)``, ``help(vlem.Map)``, ``help(vlem.Feed)`` and ``help(vlem.study)``.
 """
 
+import os
+import sys
+import warnings
 from dataclasses import dataclass
-from typing import Any, Optional
+from typing import Any, Callable, List, Optional, Union
 
 from ._vlem import (  # noqa: F401  (re-exported)
     ConfigError,
     DatasetError,
     EncoderError,
+    EvalError,
     Feed,
     Intrinsics,
     Map,
@@ -30,13 +38,20 @@ from ._vlem import (  # noqa: F401  (re-exported)
     StageError,
     VlemError,
     __version__,
+    class_names,
+    eval_semseg2d,
+    eval_semseg3d,
+    eval_trajectory,
     plugins,
+    study_cells,
 )
+from . import _vlem
 
 __all__ = [
     "ConfigError",
     "DatasetError",
     "EncoderError",
+    "EvalError",
     "Feed",
     "Intrinsics",
     "Map",
@@ -46,9 +61,16 @@ __all__ = [
     "QueryError",
     "Segments",
     "StageError",
+    "StudyTable",
     "VlemError",
     "__version__",
+    "class_names",
+    "eval_semseg2d",
+    "eval_semseg3d",
+    "eval_trajectory",
     "plugins",
+    "study",
+    "study_cells",
 ]
 
 
@@ -91,3 +113,76 @@ def _progress_adapter(progress):
 
         return on_event
     return progress
+
+
+class StudyTable(list):
+    """A study's table: one dict per cell with a result (the columns of ``study.csv``: ``cell``,
+    ``sequence``, ``tracker``, ``encoder``, ``map``, ``status``, ``miou``, ``map_bytes``,
+    ``peak_resident_bytes``, per-stage ``*_ms``, ``error``, ...)."""
+
+    def to_dataframe(self):
+        """The table as a pandas DataFrame (pandas is not a dependency of vlem: install it)."""
+        try:
+            import pandas
+        except ImportError as e:
+            raise ImportError(
+                "StudyTable.to_dataframe needs pandas: python -m pip install pandas"
+            ) from e
+        return pandas.DataFrame(list(self))
+
+    def failed(self) -> List[dict]:
+        """The rows of cells that failed (``status == "failed"``), each with its ``error``."""
+        return [row for row in self if row.get("status") != "ok"]
+
+
+def _cell_launcher():
+    """The command that runs one study cell in a child process: this interpreter importing this
+    package (found on the child's path even when it is not installed)."""
+    package_root = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
+    path = os.environ.get("PYTHONPATH")
+    env = {"PYTHONPATH": package_root + (os.pathsep + path if path else "")}
+    code = "import sys, vlem._vlem as v; v._study_cell(sys.argv[1])"
+    return [sys.executable, "-c", code], env
+
+
+def study(
+    study_file: Union[str, "os.PathLike[str]"],
+    out: Union[str, "os.PathLike[str]"] = "out/study",
+    *,
+    shard: Optional[str] = None,
+    force: bool = False,
+    report: bool = False,
+    progress: Optional[Callable[[dict], Any]] = None,
+) -> StudyTable:
+    """Runs the comparison study ``study_file`` (the TOML format of ``vlem study``: a ``[study]``
+    table with ``base``, and ``[[maps]]``, ``[[encoders]]``, ``[[trackers]]``, ``[[sequences]]``
+    variants) and returns its table.
+
+    Every cell maps and evaluates (semseg3d) in a child process of this interpreter, so a crash
+    loses one cell and peak memory is the cell's own. Results land in ``out/cells/<cell>/``;
+    finished cells are skipped when the study runs again (``force=True`` reruns them), so an
+    interrupted study resumes. ``shard="i/n"`` runs a slice of the cells; ``report=True`` runs
+    none and only gathers. ``out/study.csv`` is written either way. ``progress`` receives one
+    dict per event (``{"event": "planned", "total": n}``, ``{"event": "started" | "finished",
+    "cell": i, "label": ..., "status": ...}``). A failed cell is a row with ``status ==
+    "failed"`` and its ``error`` (and a warning), not an exception.
+    """
+    launcher, env = _cell_launcher()
+    rows = _vlem._study(
+        os.fspath(study_file),
+        os.fspath(out),
+        launcher,
+        env,
+        shard=shard,
+        force=force,
+        report=report,
+        progress=progress,
+    )
+    table = StudyTable(rows)
+    failed = table.failed()
+    if failed:
+        warnings.warn(
+            f"{len(failed)} study cell(s) failed, e.g. cell {failed[0]['cell']}: {failed[0]['error']}",
+            stacklevel=2,
+        )
+    return table

@@ -15,8 +15,59 @@ class StageError(VlemError): ...
 class EncoderError(StageError): ...
 class MapFileError(VlemError): ...
 class QueryError(VlemError): ...
+class EvalError(VlemError): ...
+
+PathLike = Union[str, os.PathLike]
+Config = Union[PathLike, Dict[str, Any]]
 
 def plugins() -> List[Dict[str, str]]: ...
+def eval_trajectory(
+    estimate: PathLike,
+    reference: PathLike,
+    *,
+    delta: int = 1,
+    max_time_diff: float = 0.02,
+    scale: bool = False,
+) -> Dict[str, Any]: ...
+def eval_semseg3d(
+    config: Config,
+    map: PathLike,
+    *,
+    dataset: Optional[PathLike] = None,
+    max_frames: Optional[int] = None,
+    classes: str = "nyu40",
+    prompts: Optional[Union[Dict[str, str], PathLike]] = None,
+    protocol: str = "vlem",
+    stride: int = 1,
+    voxel_size: Optional[float] = None,
+    radius: float = 0.05,
+    k: int = 5,
+    config_dir: Optional[PathLike] = None,
+) -> Dict[str, Any]: ...
+def eval_semseg2d(
+    config: Config,
+    *,
+    dataset: Optional[PathLike] = None,
+    max_frames: Optional[int] = None,
+    classes: str = "nyu40",
+    prompts: Optional[Union[Dict[str, str], PathLike]] = None,
+    stride: int = 30,
+    config_dir: Optional[PathLike] = None,
+) -> Dict[str, Any]: ...
+def class_names(classes: str = "nyu40") -> List[str]: ...
+def study_cells(study: PathLike) -> List[Dict[str, Any]]: ...
+def _study(
+    study: PathLike,
+    out: PathLike,
+    launcher: List[str],
+    env: Dict[str, str],
+    *,
+    shard: Optional[str] = None,
+    force: bool = False,
+    report: bool = False,
+    progress: Optional[Callable[[Dict[str, Any]], Any]] = None,
+) -> List[Dict[str, Any]]: ...
+def _study_cell(dir: PathLike) -> None: ...
 
 class Intrinsics:
     width: int
