@@ -1,6 +1,8 @@
 //! A one-dimensional Gaussian mixture fitted by expectation–maximisation: the paper's similarity
 //! clustering, which keeps only the points of the highest-similarity population.
 
+use rayon::prelude::*;
+
 /// Variance added to every component, as scikit-learn's `reg_covar`: keeps a component that
 /// collapses onto identical scores from a zero variance (an infinite density).
 const VARIANCE_FLOOR: f64 = 1e-6;
@@ -8,6 +10,8 @@ const VARIANCE_FLOOR: f64 = 1e-6;
 const TOLERANCE: f64 = 1e-7;
 /// EM stops after this many iterations at the latest.
 const MAX_ITERATIONS: usize = 200;
+/// Values per parallel chunk of an EM step (fixed, so sums do not depend on the thread count).
+const CHUNK: usize = 8192;
 
 /// A fitted mixture: one entry per component, in the order of the initial means (ascending).
 #[derive(Clone, Debug, PartialEq)]
@@ -60,8 +64,8 @@ impl Gmm1d {
         let mut resp = vec![0.0; x.len() * k];
         let mut previous = f64::NEG_INFINITY;
         for _ in 0..MAX_ITERATIONS {
-            let log_likelihood = gmm.expectation(&x, &mut resp);
-            gmm.maximisation(&x, &resp);
+            let (log_likelihood, nk, weighted_sum) = gmm.expectation(&x, &mut resp);
+            gmm.maximisation(&x, &resp, &nk, &weighted_sum);
             if (log_likelihood - previous).abs() < TOLERANCE {
                 break;
             }
@@ -70,58 +74,115 @@ impl Gmm1d {
         Some(gmm)
     }
 
-    /// Fills `resp[i * k + j]` with the posterior of component `j` for value `i`; returns the
-    /// mean log-likelihood.
-    fn expectation(&self, x: &[f64], resp: &mut [f64]) -> f64 {
-        let k = self.means.len();
-        let mut total = 0.0;
-        for (i, &v) in x.iter().enumerate() {
-            let row = &mut resp[i * k..(i + 1) * k];
-            for (j, r) in row.iter_mut().enumerate() {
-                *r = self.log_weighted_density(j, v);
-            }
-            // Log-sum-exp: far from every mean, the densities underflow to zero in linear space.
-            let max = row.iter().copied().fold(f64::NEG_INFINITY, f64::max);
-            let sum: f64 = row.iter().map(|r| (r - max).exp()).sum();
-            let log_norm = max + sum.ln();
-            row.iter_mut().for_each(|r| *r = (*r - log_norm).exp());
-            total += log_norm;
-        }
-        total / x.len() as f64
+    /// Per component, the log density's terms that do not depend on the value: `ln w − ½ ln(2πσ²)`
+    /// and `σ²`.
+    fn terms(&self) -> Vec<(f64, f64, f64)> {
+        (0..self.means.len())
+            .map(|j| {
+                let var = self.variances[j];
+                let constant = self.weights[j].max(f64::MIN_POSITIVE).ln()
+                    - 0.5 * (2.0 * std::f64::consts::PI * var).ln();
+                (constant, self.means[j], var)
+            })
+            .collect()
     }
 
-    fn maximisation(&mut self, x: &[f64], resp: &[f64]) {
+    /// Fills `resp[i * k + j]` with the posterior of component `j` for value `i`; returns the
+    /// mean log-likelihood and, per component, the posteriors' sum and their sum weighted by the
+    /// values (what the maximisation needs). Fixed-size chunks in parallel, their sums added in
+    /// chunk order: the result does not depend on the number of threads.
+    fn expectation(&self, x: &[f64], resp: &mut [f64]) -> (f64, Vec<f64>, Vec<f64>) {
         let k = self.means.len();
+        let terms = self.terms();
+        let partials: Vec<(f64, Vec<f64>, Vec<f64>)> = x
+            .par_chunks(CHUNK)
+            .zip(resp.par_chunks_mut(CHUNK * k))
+            .map(|(x, resp)| {
+                let (mut total, mut nk, mut sum) = (0.0, vec![0.0; k], vec![0.0; k]);
+                for (&v, row) in x.iter().zip(resp.chunks_exact_mut(k)) {
+                    for (r, &(constant, mean, var)) in row.iter_mut().zip(&terms) {
+                        let d = v - mean;
+                        *r = constant - 0.5 * d * d / var;
+                    }
+                    // Log-sum-exp: far from every mean, the densities underflow to zero in linear
+                    // space.
+                    let max = row.iter().copied().fold(f64::NEG_INFINITY, f64::max);
+                    let mut norm = 0.0;
+                    for r in row.iter_mut() {
+                        *r = (*r - max).exp();
+                        norm += *r;
+                    }
+                    for (j, r) in row.iter_mut().enumerate() {
+                        *r /= norm;
+                        nk[j] += *r;
+                        sum[j] += *r * v;
+                    }
+                    total += max + norm.ln();
+                }
+                (total, nk, sum)
+            })
+            .collect();
+        let (mut total, mut nk, mut sum) = (0.0, vec![0.0; k], vec![0.0; k]);
+        for (t, n, s) in partials {
+            total += t;
+            nk.iter_mut().zip(n).for_each(|(a, b)| *a += b);
+            sum.iter_mut().zip(s).for_each(|(a, b)| *a += b);
+        }
+        (total / x.len() as f64, nk, sum)
+    }
+
+    fn maximisation(&mut self, x: &[f64], resp: &[f64], nk: &[f64], weighted_sum: &[f64]) {
+        let k = self.means.len();
+        let means: Vec<f64> = (0..k)
+            .map(|j| {
+                if nk[j] <= f64::EPSILON {
+                    self.means[j]
+                } else {
+                    weighted_sum[j] / nk[j]
+                }
+            })
+            .collect();
+        let spread: Vec<f64> = x
+            .par_chunks(CHUNK)
+            .zip(resp.par_chunks(CHUNK * k))
+            .map(|(x, resp)| {
+                let mut out = vec![0.0; k];
+                for (&v, row) in x.iter().zip(resp.chunks_exact(k)) {
+                    for ((o, &r), &mean) in out.iter_mut().zip(row).zip(&means) {
+                        *o += r * (v - mean) * (v - mean);
+                    }
+                }
+                out
+            })
+            .collect::<Vec<_>>()
+            .into_iter()
+            .fold(vec![0.0; k], |mut acc, part| {
+                acc.iter_mut().zip(part).for_each(|(a, b)| *a += b);
+                acc
+            });
         for j in 0..k {
-            let nk: f64 = (0..x.len()).map(|i| resp[i * k + j]).sum();
-            self.weights[j] = nk / x.len() as f64;
+            self.weights[j] = nk[j] / x.len() as f64;
             // A component that lost every point keeps its mean and variance (and weight ≈ 0)
             // instead of dividing by zero.
-            if nk <= f64::EPSILON {
+            if nk[j] <= f64::EPSILON {
                 continue;
             }
-            let mean = (0..x.len()).map(|i| resp[i * k + j] * x[i]).sum::<f64>() / nk;
-            let variance = (0..x.len())
-                .map(|i| resp[i * k + j] * (x[i] - mean) * (x[i] - mean))
-                .sum::<f64>()
-                / nk;
-            self.means[j] = mean;
-            self.variances[j] = variance + VARIANCE_FLOOR;
+            self.means[j] = means[j];
+            self.variances[j] = spread[j] / nk[j] + VARIANCE_FLOOR;
         }
-    }
-
-    fn log_weighted_density(&self, j: usize, v: f64) -> f64 {
-        let var = self.variances[j];
-        let d = v - self.means[j];
-        self.weights[j].max(f64::MIN_POSITIVE).ln()
-            - 0.5 * (2.0 * std::f64::consts::PI * var).ln()
-            - 0.5 * d * d / var
     }
 
     /// The most likely component of `v`.
     pub fn predict(&self, v: f64) -> usize {
-        (0..self.means.len())
-            .map(|j| (j, self.log_weighted_density(j, v)))
+        Self::most_likely(&self.terms(), v)
+    }
+
+    /// The most likely component of `v` given [`Gmm1d::terms`].
+    fn most_likely(terms: &[(f64, f64, f64)], v: f64) -> usize {
+        terms
+            .iter()
+            .enumerate()
+            .map(|(j, &(constant, mean, var))| (j, constant - 0.5 * (v - mean) * (v - mean) / var))
             .fold((0, f64::NEG_INFINITY), |best, (j, l)| {
                 if l > best.1 { (j, l) } else { best }
             })
@@ -146,8 +207,9 @@ pub fn top_component(values: &[f32], components: usize) -> Vec<usize> {
     let Some(gmm) = Gmm1d::fit(values, components) else {
         return finite().collect();
     };
+    let terms = gmm.terms();
     let labels: Vec<(usize, usize)> = finite()
-        .map(|i| (i, gmm.predict(f64::from(values[i]))))
+        .map(|i| (i, Gmm1d::most_likely(&terms, f64::from(values[i]))))
         .collect();
     let mut used = vec![false; gmm.means.len()];
     labels.iter().for_each(|&(_, j)| used[j] = true);
