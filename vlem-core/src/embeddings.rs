@@ -241,6 +241,161 @@ impl PixelEmbeddings {
     }
 }
 
+/// A patch grid's per-pixel embeddings as combinations of grid rows, so that a map adding up many
+/// pixels' unit embeddings adds per pixel four weights instead of `dim`-long vectors, and the rows
+/// once at the end.
+///
+/// Why: [`PixelEmbeddings::embedding_at`] interpolates and normalises a `dim`-long vector per pixel
+/// (about 3·dim operations), which is most of a map's integration time on patch-encoder output. The
+/// interpolated embedding is `Σ w_c g_c` over the (at most four) grid rows `g_c` around the pixel,
+/// and its norm follows from the rows' dot products, computed once per grid: so the unit embedding
+/// is `Σ (w_c / ‖Σ w g‖) g_c`, the same vector up to rounding.
+#[derive(Debug)]
+pub struct PatchSampler<'a> {
+    data: &'a [f32],
+    dim: usize,
+    width: u32,
+    height: u32,
+    grid_width: usize,
+    grid_height: usize,
+    /// Per grid cell `c` (row-major): `g_c·g_c`, `g_c·g_right`, `g_c·g_down`, `g_c·g_down_right`
+    /// and `g_right·g_down` (0 where a neighbour is outside the grid).
+    dots: Vec<[f64; 5]>,
+}
+
+impl<'a> PatchSampler<'a> {
+    fn new(e: &'a PixelEmbeddings) -> Option<Self> {
+        let EmbeddingLayout::PatchGrid {
+            grid_width,
+            grid_height,
+            data,
+        } = &e.layout
+        else {
+            return None;
+        };
+        let (gw, gh, d) = (*grid_width as usize, *grid_height as usize, e.dim);
+        let row = |x: usize, y: usize| &data[(y * gw + x) * d..(y * gw + x + 1) * d];
+        let dot = |a: &[f32], b: &[f32]| -> f64 {
+            a.iter()
+                .zip(b)
+                .map(|(x, y)| f64::from(*x) * f64::from(*y))
+                .sum()
+        };
+        let mut dots = Vec::with_capacity(gw * gh);
+        for y in 0..gh {
+            for x in 0..gw {
+                let c = row(x, y);
+                let (right, down) = (x + 1 < gw, y + 1 < gh);
+                dots.push([
+                    dot(c, c),
+                    if right { dot(c, row(x + 1, y)) } else { 0.0 },
+                    if down { dot(c, row(x, y + 1)) } else { 0.0 },
+                    if right && down {
+                        dot(c, row(x + 1, y + 1))
+                    } else {
+                        0.0
+                    },
+                    if right && down {
+                        dot(row(x + 1, y), row(x, y + 1))
+                    } else {
+                        0.0
+                    },
+                ]);
+            }
+        }
+        Some(Self {
+            data,
+            dim: d,
+            width: e.width,
+            height: e.height,
+            grid_width: gw,
+            grid_height: gh,
+            dots,
+        })
+    }
+
+    /// The grid row of cell `cell` (as [`PatchSampler::weights`] names it).
+    pub fn row(&self, cell: u32) -> &'a [f32] {
+        let c = cell as usize;
+        &self.data[c * self.dim..(c + 1) * self.dim]
+    }
+
+    /// Pixel `(u, v)`'s unit embedding as up to four `(cell, weight)` pairs (unused pairs have
+    /// weight 0), sampled as [`PixelEmbeddings::embedding_at`] samples; `None` where that has no
+    /// embedding (outside the image, or a zero or non-finite interpolation).
+    pub fn weights(&self, u: u32, v: u32) -> Option<[(u32, f32); 4]> {
+        if u >= self.width || v >= self.height {
+            return None;
+        }
+        let sample = |pixel: u32, size: u32, cells: usize| -> (usize, bool, f32) {
+            let x = (pixel as f32 + 0.5) * cells as f32 / size as f32 - 0.5;
+            let x = x.clamp(0.0, (cells - 1) as f32);
+            let i0 = x.floor() as usize;
+            // At the last cell the second sample is the first again.
+            (i0, i0 + 1 < cells, x - i0 as f32)
+        };
+        let (x0, has_x1, fx) = sample(u, self.width, self.grid_width);
+        let (y0, has_y1, fy) = sample(v, self.height, self.grid_height);
+        // Weights of the block's four cells; a missing neighbour's weight goes to the cell it
+        // repeats, as the clamped lookup does.
+        let (mut wa, mut wb) = ((1.0 - fx) * (1.0 - fy), fx * (1.0 - fy));
+        let (mut wc, mut we) = ((1.0 - fx) * fy, fx * fy);
+        if !has_x1 {
+            wa += wb;
+            wc += we;
+            wb = 0.0;
+            we = 0.0;
+        }
+        if !has_y1 {
+            wa += wc;
+            wb += we;
+            wc = 0.0;
+            we = 0.0;
+        }
+        let a = y0 * self.grid_width + x0;
+        let dots = |c: usize| self.dots[c];
+        let da = dots(a);
+        let (a2, b2, c2, e2) = (f64::from(wa), f64::from(wb), f64::from(wc), f64::from(we));
+        let mut norm2 = a2 * a2 * da[0];
+        if has_x1 {
+            let db = dots(a + 1);
+            norm2 += b2 * b2 * db[0] + 2.0 * a2 * b2 * da[1];
+        }
+        if has_y1 {
+            let dc = dots(a + self.grid_width);
+            norm2 += c2 * c2 * dc[0] + 2.0 * a2 * c2 * da[2];
+            if has_x1 {
+                let db = dots(a + 1);
+                let de = dots(a + self.grid_width + 1);
+                norm2 += e2 * e2 * de[0]
+                    + 2.0 * (a2 * e2 * da[3] + b2 * c2 * da[4] + b2 * e2 * db[2] + c2 * e2 * dc[1]);
+            }
+        }
+        if !(norm2.is_finite() && norm2 > 0.0) {
+            return None;
+        }
+        let inv = (1.0 / norm2.sqrt()) as f32;
+        let (right, down) = (
+            u32::from(has_x1),
+            if has_y1 { self.grid_width as u32 } else { 0 },
+        );
+        let a = a as u32;
+        Some([
+            (a, wa * inv),
+            (a + right, wb * inv),
+            (a + down, wc * inv),
+            (a + down + right, we * inv),
+        ])
+    }
+}
+
+impl PixelEmbeddings {
+    /// The patch sampler of a patch-grid layout (`None` for segments).
+    pub fn patch_sampler(&self) -> Option<PatchSampler<'_>> {
+        PatchSampler::new(self)
+    }
+}
+
 /// L2-normalises `v` in place; returns false (leaving `v` unchanged) for a zero or non-finite vector.
 pub fn normalise(v: &mut [f32]) -> bool {
     let norm = v.iter().map(|x| x * x).sum::<f32>().sqrt();
@@ -255,6 +410,40 @@ pub fn normalise(v: &mut [f32]) -> bool {
 #[cfg(test)]
 mod tests {
     use super::*;
+
+    #[test]
+    fn the_patch_sampler_gives_the_interpolated_unit_embeddings() {
+        // A 5x3 grid of 7-d rows over a 37x23 image (uneven, so samples fall everywhere,
+        // borders included), one row zero.
+        let (gw, gh, dim) = (5u32, 3u32, 7usize);
+        let mut data: Vec<f32> = (0..(gw * gh) as usize * dim)
+            .map(|i| ((i * 7919 % 113) as f32 / 56.0) - 1.0)
+            .collect();
+        data[..dim].iter_mut().for_each(|x| *x = 0.0);
+        let e = PixelEmbeddings::from_patch_grid(37, 23, dim, gw, gh, data).unwrap();
+        let sampler = e.patch_sampler().unwrap();
+        let (mut direct, mut combined) = (vec![0.0; dim], vec![0.0; dim]);
+        for v in 0..23 {
+            for u in 0..37 {
+                let expected = e.embedding_at(u, v, &mut direct);
+                let weights = sampler.weights(u, v);
+                assert_eq!(weights.is_some(), expected, "pixel ({u}, {v})");
+                let Some(weights) = weights else { continue };
+                combined.iter_mut().for_each(|x| *x = 0.0);
+                for (cell, w) in weights {
+                    for (c, r) in combined.iter_mut().zip(sampler.row(cell)) {
+                        *c += w * r;
+                    }
+                }
+                for (a, b) in combined.iter().zip(&direct) {
+                    assert!((a - b).abs() < 1e-5, "pixel ({u}, {v}): {a} against {b}");
+                }
+            }
+        }
+        assert!(sampler.weights(37, 0).is_none());
+        let segments = PixelEmbeddings::from_segments(1, 1, 1, vec![0], vec![1.0]).unwrap();
+        assert!(segments.patch_sampler().is_none());
+    }
 
     #[test]
     fn segments_look_up_normalised_rows_and_skip_unsegmented_pixels() {

@@ -4,8 +4,10 @@
 //! Frames: the shared 150-frame living-room sequence (`../shared/data/icl-livingroom1`), or the
 //! committed 30 frames when it is absent; `VLEM_BENCH_FRAMES=N` uses the first N. Embeddings: 512-d,
 //! 300 segments per frame (32x32-pixel blocks) with random unit rows that stay fixed per block over
-//! the sequence, the layout and size a SAM + CLIP encoder produces. Poses: the dataset's. Each map
-//! runs with its defaults and a budget of 1M points (voxels, cells).
+//! the sequence, the layout and size a SAM + CLIP encoder produces; and for the voxel map also a
+//! 30x40 grid of 512-d patch embeddings (NARADIO's output shape), interpolated per pixel. Poses: the
+//! dataset's. Each map runs with its defaults and a budget of 1M points (voxels, cells).
+//! `VLEM_BENCH_MAPS=voxel` runs only the named maps.
 #![allow(
     clippy::unwrap_used,
     clippy::expect_used,
@@ -55,10 +57,24 @@ fn main() {
         rayon::current_num_threads()
     );
     println!(
-        "| map | precision | integrate ms/frame (mean) | query ms | points | bytes | bytes/point |"
+        "| map | embeddings | precision | integrate ms/frame (mean) | query ms | points | bytes | bytes/point |"
     );
-    println!("|---|---|---:|---:|---:|---:|---:|");
-    for kind in ["point-cloud", "voxel", "segment"] {
+    println!("|---|---|---|---:|---:|---:|---:|---:|");
+    let only = std::env::var("VLEM_BENCH_MAPS").ok();
+    let patches = patch_embeddings(w, h);
+    let cases = [
+        ("point-cloud", "segments", &embeddings),
+        ("voxel", "segments", &embeddings),
+        ("segment", "segments", &embeddings),
+        ("voxel", "30x40 patches", &patches),
+    ];
+    for (kind, layout, embeddings) in cases {
+        if only
+            .as_deref()
+            .is_some_and(|o| !o.split(',').any(|k| k == kind))
+        {
+            continue;
+        }
         for precision in ["f32", "f16"] {
             let mut params = toml::Table::new();
             params.insert("precision".into(), precision.into());
@@ -82,7 +98,7 @@ fn main() {
                 map.integrate(&Observation {
                     frame,
                     pose: frame.pose.as_ref().unwrap(),
-                    embeddings: Some(&embeddings),
+                    embeddings: Some(embeddings),
                 })
                 .unwrap();
             }
@@ -93,11 +109,22 @@ fn main() {
             let query = t.elapsed().as_secs_f64() * 1e3;
             let (n, bytes) = (map.len(), map.memory_bytes());
             println!(
-                "| {kind} | {precision} | {per_frame:.0} | {query:.1} | {n} | {bytes} | {:.0} |",
+                "| {kind} | {layout} | {precision} | {per_frame:.0} | {query:.1} | {n} | {bytes} | {:.0} |",
                 bytes as f64 / n.max(1) as f64
             );
         }
     }
+}
+
+/// A 30x40 grid of random patch embeddings (NARADIO's and dinov3's output shape at 640x480: 16-pixel
+/// patches), fixed over the sequence; maps interpolate it per pixel.
+fn patch_embeddings(w: u32, h: u32) -> PixelEmbeddings {
+    let mut rng = StdRng::seed_from_u64(12);
+    let (gw, gh) = (40u32, 30u32);
+    let data = (0..(gw * gh) as usize * DIM)
+        .map(|_| rng.random_range(-1.0f32..1.0))
+        .collect();
+    PixelEmbeddings::from_patch_grid(w, h, DIM, gw, gh, data).unwrap()
 }
 
 /// 32x32-pixel blocks, each with a fixed random unit embedding.

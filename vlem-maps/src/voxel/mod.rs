@@ -26,7 +26,7 @@ use std::collections::HashMap;
 use std::hash::{BuildHasherDefault, Hash, Hasher};
 
 use rayon::prelude::*;
-use vlem_core::embeddings::normalise;
+use vlem_core::embeddings::{PatchSampler, normalise};
 use vlem_core::{
     BuildContext, ColouredMesh, CoreError, EmbeddingMap, IntegrationStats, MapBudget, MapMetadata,
     MapSnapshot, Observation, PixelEmbeddings, RgbImage, StageKind, parse_params,
@@ -204,6 +204,8 @@ enum Outcome {
 /// Where a frame's pixel embeddings and colours come from.
 struct Source<'a> {
     embeddings: Option<&'a PixelEmbeddings>,
+    /// For a patch grid: pixels as weights of grid rows (see `accumulate`).
+    patches: Option<PatchSampler<'a>>,
     colour: &'a RgbImage,
     width: u32,
 }
@@ -223,9 +225,22 @@ impl Source<'_> {
         // Neighbouring pixels usually share a segment: add each stored row once with its
         // multiplicity instead of once per pixel.
         let mut pending: Option<(&[f32], f32)> = None;
+        // Patch grids: a voxel's pixels touch a few grid rows; sum each row's weights over the
+        // pixels and add the rows once.
+        let mut rows: Vec<(u32, f32)> = Vec::new();
         for &(_, pixel) in run {
             let (u, v) = (pixel % self.width, pixel / self.width);
-            if let Some(e) = self.embeddings {
+            if let Some(sampler) = &self.patches {
+                let Some(weights) = sampler.weights(u, v) else {
+                    continue;
+                };
+                for (cell, w) in weights.into_iter().filter(|&(_, w)| w != 0.0) {
+                    match rows.iter_mut().find(|(c, _)| *c == cell) {
+                        Some((_, total)) => *total += w,
+                        None => rows.push((cell, w)),
+                    }
+                }
+            } else if let Some(e) = self.embeddings {
                 if let Some(row) = e.segment_row(u, v) {
                     let same =
                         matches!(pending, Some((p, _)) if std::ptr::eq(p.as_ptr(), row.as_ptr()));
@@ -250,6 +265,11 @@ impl Source<'_> {
         }
         if let Some((p, m)) = pending {
             axpy(sum, p, m);
+        }
+        if let Some(sampler) = &self.patches {
+            for (cell, w) in rows {
+                axpy(sum, sampler.row(cell), w);
+            }
         }
         (k, colour)
     }
@@ -408,8 +428,10 @@ impl VoxelMap {
         let dim = self.dim;
         let width = dim.max(1);
         let chunk = (CHUNK_VALUES / width).max(64);
+        let embeddings = obs.embeddings.filter(|_| dim > 0);
         let source = Source {
-            embeddings: obs.embeddings.filter(|_| dim > 0),
+            embeddings,
+            patches: embeddings.and_then(PixelEmbeddings::patch_sampler),
             colour: &obs.frame.colour,
             width: obs.frame.depth.width(),
         };
