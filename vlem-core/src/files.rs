@@ -4,10 +4,13 @@
 //! Why it exists: the `vlem` command, the Python package and the study runner all write small
 //! result files (statistics, evaluation reports, study tables) that a reader may open while a run
 //! is still going, or after it was killed. Each goes through a temporary file in the same folder,
-//! a sync and a rename, as the map file does, so a reader sees the old file or the new one.
+//! a sync and a rename (the map file too), so a reader sees the old file or the new one.
 
+use std::fs::{File, OpenOptions};
 use std::io::Write;
 use std::path::{Path, PathBuf};
+use std::sync::atomic::{AtomicU64, Ordering};
+use std::time::{SystemTime, UNIX_EPOCH};
 
 use crate::error::{CoreError, Result};
 
@@ -17,24 +20,75 @@ use crate::error::{CoreError, Result};
 /// # Errors
 /// [`CoreError::Io`] naming the file that could not be created, written or renamed.
 pub fn write_atomically(path: &Path, bytes: &[u8]) -> Result<()> {
+    replace_file(path, "file", |tmp, mut file| {
+        file.write_all(bytes)
+            .and_then(|()| file.sync_all())
+            .map_err(|e| CoreError::io(tmp, e))
+    })
+}
+
+/// Replaces `path` with what `write` writes (and syncs) into a fresh temporary file in the same
+/// folder: the temporary file is renamed over `path` and the folder synced, or removed when
+/// anything fails, so readers see the old file or the new one. `fallback_name` names the
+/// temporary file when `path` has no file name. The one way every file of vlem is written whole,
+/// the map file included.
+pub(crate) fn replace_file<T>(
+    path: &Path,
+    fallback_name: &str,
+    write: impl FnOnce(&Path, File) -> Result<T>,
+) -> Result<T> {
     let dir = match path.parent() {
         Some(p) if !p.as_os_str().is_empty() => p.to_path_buf(),
         _ => PathBuf::from("."),
     };
-    let file_name = path
-        .file_name()
-        .map(|n| n.to_string_lossy().into_owned())
-        .unwrap_or_default();
-    let (tmp, mut file) = crate::mapfile::create_temp_file(&dir, &file_name)?;
-    let result = file
-        .write_all(bytes)
-        .and_then(|()| file.sync_all())
-        .map_err(|e| CoreError::io(&tmp, e))
-        .and_then(|()| std::fs::rename(&tmp, path).map_err(|e| CoreError::io(path, e)));
+    let file_name = path.file_name().map_or_else(
+        || fallback_name.to_owned(),
+        |n| n.to_string_lossy().into_owned(),
+    );
+    let (tmp, file) = create_temp_file(&dir, &file_name)?;
+    let result = write(&tmp, file).and_then(|out| {
+        std::fs::rename(&tmp, path).map_err(|e| CoreError::io(path, e))?;
+        // Make the rename itself durable; not every platform can open a directory.
+        if let Ok(d) = File::open(&dir) {
+            let _ = d.sync_all();
+        }
+        Ok(out)
+    });
     if result.is_err() {
         let _ = std::fs::remove_file(&tmp);
     }
     result
+}
+
+/// Saves started by this process (part of the temporary file names).
+static SAVES: AtomicU64 = AtomicU64::new(0);
+
+/// Creates a new, exclusively owned temporary file `.<file_name>.tmp-<pid>-<n>-<clock>` in `dir`.
+/// The name differs between threads (counter) and processes (pid; the clock and `O_EXCL` cover
+/// processes of other pid namespaces sharing the directory), and a name that exists already,
+/// e.g. left by a killed save, is skipped rather than reused.
+pub(crate) fn create_temp_file(dir: &Path, file_name: &str) -> Result<(PathBuf, File)> {
+    let pid = std::process::id();
+    let mut last = None;
+    for _ in 0..64 {
+        let n = SAVES.fetch_add(1, Ordering::Relaxed);
+        let clock = SystemTime::now()
+            .duration_since(UNIX_EPOCH)
+            .map_or(0, |d| d.as_nanos() as u64);
+        let tmp = dir.join(format!(".{file_name}.tmp-{pid}-{n}-{clock:x}"));
+        match OpenOptions::new().write(true).create_new(true).open(&tmp) {
+            Ok(file) => return Ok((tmp, file)),
+            Err(e) if e.kind() == std::io::ErrorKind::AlreadyExists => last = Some((tmp, e)),
+            Err(e) => return Err(CoreError::io(&tmp, e)),
+        }
+    }
+    let (tmp, e) = last.unwrap_or_else(|| {
+        (
+            dir.join(file_name),
+            std::io::Error::from(std::io::ErrorKind::AlreadyExists),
+        )
+    });
+    Err(CoreError::io(&tmp, e))
 }
 
 /// Peak resident memory of this process in bytes (Linux `VmHWM`), `None` where unavailable.

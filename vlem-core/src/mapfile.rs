@@ -20,11 +20,9 @@
 //! never write into each other's temporary file; a temporary file left behind by a killed save is
 //! never reused. The last complete save wins the rename.
 
-use std::fs::{File, OpenOptions};
+use std::fs::File;
 use std::io::{BufWriter, Write};
 use std::path::{Path, PathBuf};
-use std::sync::atomic::{AtomicU64, Ordering};
-use std::time::{SystemTime, UNIX_EPOCH};
 
 use serde::{Deserialize, Serialize};
 
@@ -136,58 +134,7 @@ impl<W: Write> Write for Checksummed<W> {
 /// [`CoreError::Io`] naming the file, or an inconsistent snapshot.
 pub fn write_map_file(path: &Path, snapshot: &MapSnapshot) -> Result<u64> {
     snapshot.validate()?;
-    let dir = match path.parent() {
-        Some(p) if !p.as_os_str().is_empty() => p.to_path_buf(),
-        _ => PathBuf::from("."),
-    };
-    let file_name = path
-        .file_name()
-        .map(|n| n.to_string_lossy().into_owned())
-        .unwrap_or_else(|| "map.vlem".into());
-    let (tmp, file) = create_temp_file(&dir, &file_name)?;
-    let result = write_to(&tmp, file, snapshot).and_then(|size| {
-        std::fs::rename(&tmp, path).map_err(|e| CoreError::io(path, e))?;
-        // Make the rename itself durable; not every platform can open a directory.
-        if let Ok(d) = File::open(&dir) {
-            let _ = d.sync_all();
-        }
-        Ok(size)
-    });
-    if result.is_err() {
-        let _ = std::fs::remove_file(&tmp);
-    }
-    result
-}
-
-/// Saves started by this process (part of the temporary file names).
-static SAVES: AtomicU64 = AtomicU64::new(0);
-
-/// Creates a new, exclusively owned temporary file `.<file_name>.tmp-<pid>-<n>-<clock>` in `dir`.
-/// The name differs between threads (counter) and processes (pid; the clock and `O_EXCL` cover
-/// processes of other pid namespaces sharing the directory), and a name that exists already,
-/// e.g. left by a killed save, is skipped rather than reused.
-pub(crate) fn create_temp_file(dir: &Path, file_name: &str) -> Result<(PathBuf, File)> {
-    let pid = std::process::id();
-    let mut last = None;
-    for _ in 0..64 {
-        let n = SAVES.fetch_add(1, Ordering::Relaxed);
-        let clock = SystemTime::now()
-            .duration_since(UNIX_EPOCH)
-            .map_or(0, |d| d.as_nanos() as u64);
-        let tmp = dir.join(format!(".{file_name}.tmp-{pid}-{n}-{clock:x}"));
-        match OpenOptions::new().write(true).create_new(true).open(&tmp) {
-            Ok(file) => return Ok((tmp, file)),
-            Err(e) if e.kind() == std::io::ErrorKind::AlreadyExists => last = Some((tmp, e)),
-            Err(e) => return Err(CoreError::io(&tmp, e)),
-        }
-    }
-    let (tmp, e) = last.unwrap_or_else(|| {
-        (
-            dir.join(file_name),
-            std::io::Error::from(std::io::ErrorKind::AlreadyExists),
-        )
-    });
-    Err(CoreError::io(&tmp, e))
+    crate::files::replace_file(path, "map.vlem", |tmp, file| write_to(tmp, file, snapshot))
 }
 
 fn write_to(tmp: &Path, file: File, snapshot: &MapSnapshot) -> Result<u64> {
@@ -522,7 +469,7 @@ mod tests {
         let dir = tempfile::tempdir().unwrap();
         let path = dir.path().join("map.vlem");
         // What a save killed in this process (same pid) would have left.
-        let (tmp, _file) = create_temp_file(dir.path(), "map.vlem").unwrap();
+        let (tmp, _file) = crate::files::create_temp_file(dir.path(), "map.vlem").unwrap();
         std::fs::write(&tmp, b"half a map").unwrap();
         write_map_file(&path, &sample()).unwrap();
         assert_eq!(read_map_file(&path).unwrap(), sample());
