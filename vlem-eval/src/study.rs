@@ -398,13 +398,10 @@ impl Study {
         let config = toml::to_string(&cell.config)
             .map_err(|e| bad(&self.settings.base, format!("cell {}: {e}", cell.index)))?;
         write_atomically(&dir.join(CELL_CONFIG), config.as_bytes())?;
-        let settings = serde_json::to_string_pretty(&self.settings).map_err(|e| {
-            io(
-                &dir.join(CELL_SETTINGS),
-                std::io::Error::other(e.to_string()),
-            )
-        })?;
-        write_atomically(&dir.join(CELL_SETTINGS), settings.as_bytes())?;
+        write_json(
+            &dir.join(CELL_SETTINGS),
+            serde_json::to_string_pretty(&self.settings),
+        )?;
         // A result of an earlier attempt must not survive a failing rerun.
         for stale in [CELL_ERROR, "stats.json", "semseg3d.json"] {
             let _ = std::fs::remove_file(dir.join(stale));
@@ -446,9 +443,10 @@ impl Study {
                 .unwrap_or_else(|| last_line(&log));
             result.error = format!("{} ({status}); see {}", message.trim(), log.display());
         }
-        let json = serde_json::to_string_pretty(&result)
-            .map_err(|e| io(&dir.join(CELL_RESULT), std::io::Error::other(e.to_string())))?;
-        write_atomically(&dir.join(CELL_RESULT), json.as_bytes())?;
+        write_json(
+            &dir.join(CELL_RESULT),
+            serde_json::to_string_pretty(&result),
+        )?;
         Ok(result)
     }
 
@@ -487,17 +485,22 @@ fn finished(dir: &Path) -> bool {
 }
 
 fn read_result(dir: &Path) -> Option<CellResult> {
-    let text = std::fs::read_to_string(dir.join(CELL_RESULT)).ok()?;
-    serde_json::from_str(&text).ok()
+    read_json(&dir.join(CELL_RESULT)).ok()
 }
 
-fn read_json(path: &Path) -> Result<serde_json::Value> {
+fn read_json<T: serde::de::DeserializeOwned>(path: &Path) -> Result<T> {
     let text = std::fs::read_to_string(path).map_err(|e| io(path, e))?;
     serde_json::from_str(&text).map_err(|e| io(path, std::io::Error::other(e.to_string())))
 }
 
+/// Writes the JSON text `json` to `path` atomically, or names `path` when it could not be encoded.
+fn write_json(path: &Path, json: serde_json::Result<String>) -> Result<()> {
+    let json = json.map_err(|e| io(path, std::io::Error::other(e.to_string())))?;
+    Ok(write_atomically(path, json.as_bytes())?)
+}
+
 fn fill_from_stats(result: &mut CellResult, path: &Path) -> Result<()> {
-    let stats = read_json(path)?;
+    let stats: serde_json::Value = read_json(path)?;
     let ms = |stage: &str| stats["mean_ms"][stage].as_f64();
     result.load_ms = ms("load");
     result.track_ms = ms("track");
@@ -513,7 +516,7 @@ fn fill_from_stats(result: &mut CellResult, path: &Path) -> Result<()> {
 }
 
 fn fill_from_eval(result: &mut CellResult, path: &Path) -> Result<()> {
-    let eval = read_json(path)?;
+    let eval: serde_json::Value = read_json(path)?;
     result.miou = eval["miou"].as_f64();
     result.eval_seconds = eval["seconds"].as_f64();
     Ok(())
@@ -538,13 +541,7 @@ pub fn run_cell(dir: &Path, note: &(dyn Fn(&str) + Sync)) -> Result<()> {
 }
 
 fn run_cell_inner(dir: &Path, note: &(dyn Fn(&str) + Sync)) -> Result<()> {
-    let settings: StudySettings = serde_json::from_value(read_json(&dir.join(CELL_SETTINGS))?)
-        .map_err(|e| {
-            io(
-                &dir.join(CELL_SETTINGS),
-                std::io::Error::other(e.to_string()),
-            )
-        })?;
+    let settings: StudySettings = read_json(&dir.join(CELL_SETTINGS))?;
     let config_path = dir.join(CELL_CONFIG);
     let (mut config, ctx) = vlem_core::load_config(&config_path)?;
     if settings.max_frames.is_some() {
@@ -589,13 +586,7 @@ fn run_cell_inner(dir: &Path, note: &(dyn Fn(&str) + Sync)) -> Result<()> {
             vlem_core::files::peak_resident_bytes(),
         )
     };
-    let json = serde_json::to_string(&stats).map_err(|e| {
-        io(
-            &dir.join("stats.json"),
-            std::io::Error::other(e.to_string()),
-        )
-    })?;
-    write_atomically(&dir.join("stats.json"), json.as_bytes())?;
+    write_json(&dir.join("stats.json"), serde_json::to_string(&stats))?;
     drop(pipeline);
 
     let mut input = SemsegInput::from_config_file(&config_path)?;
@@ -610,13 +601,10 @@ fn run_cell_inner(dir: &Path, note: &(dyn Fn(&str) + Sync)) -> Result<()> {
     };
     let evaluated = report::semseg3d(&input, &map_path, &options, note)?;
     note(&evaluated.title);
-    let json = serde_json::to_string_pretty(&evaluated).map_err(|e| {
-        io(
-            &dir.join("semseg3d.json"),
-            std::io::Error::other(e.to_string()),
-        )
-    })?;
-    write_atomically(&dir.join("semseg3d.json"), json.as_bytes())?;
+    write_json(
+        &dir.join("semseg3d.json"),
+        serde_json::to_string_pretty(&evaluated),
+    )?;
     Ok(())
 }
 
