@@ -169,16 +169,21 @@ fn recorder(dim: usize) -> Box<dyn EmbeddingMap> {
 
 fn no_progress(_: Progress) {}
 
-#[test]
-fn offline_mode_integrates_every_frame_in_order() {
-    let mut p = Pipeline::new(
+/// The still tracker, the fake 2-d encoder and a recording map, offline.
+fn offline_pipeline() -> Pipeline {
+    Pipeline::new(
         still(),
         None,
         Some(Box::new(Fake::new())),
         Some(recorder(2)),
         PipelineConfig::default(),
     )
-    .unwrap();
+    .unwrap()
+}
+
+#[test]
+fn offline_mode_integrates_every_frame_in_order() {
+    let mut p = offline_pipeline();
     let mut source = Planes {
         frames: 12,
         poses: true,
@@ -202,14 +207,7 @@ fn offline_mode_integrates_every_frame_in_order() {
 
 #[test]
 fn a_stop_handle_ends_the_run_after_the_frame_in_hand_and_keeps_the_map() {
-    let mut p = Pipeline::new(
-        still(),
-        None,
-        Some(Box::new(Fake::new())),
-        Some(recorder(2)),
-        PipelineConfig::default(),
-    )
-    .unwrap();
+    let mut p = offline_pipeline();
     let mut source = Planes {
         frames: 12,
         poses: true,
