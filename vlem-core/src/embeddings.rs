@@ -195,6 +195,23 @@ impl PixelEmbeddings {
         }
     }
 
+    /// [`PixelEmbeddings::segment_row`] by the linear pixel index `v * width + u`, for loops
+    /// that already hold it (no division per pixel).
+    #[inline]
+    pub fn segment_row_at_index(&self, index: usize) -> Option<&[f32]> {
+        match &self.layout {
+            EmbeddingLayout::Segments {
+                index: segments,
+                table,
+            } => {
+                let s = *segments.get(index)?;
+                (s != NO_SEGMENT)
+                    .then(|| &table[s as usize * self.dim..(s as usize + 1) * self.dim])
+            }
+            EmbeddingLayout::PatchGrid { .. } => None,
+        }
+    }
+
     /// Writes the unit-norm embedding of pixel `(u, v)` into `out` (length `dim`).
     ///
     /// Returns false, leaving `out` unspecified, for pixels without an embedding. In the patch
@@ -398,7 +415,9 @@ impl PixelEmbeddings {
 
 /// L2-normalises `v` in place; returns false (leaving `v` unchanged) for a zero or non-finite vector.
 pub fn normalise(v: &mut [f32]) -> bool {
-    let norm = v.iter().map(|x| x * x).sum::<f32>().sqrt();
+    // `dot`'s independent accumulators: a plain `sum` is one chain of dependent additions, which
+    // made renormalising a 512-d row the largest cost of the point-cloud map's fusion.
+    let norm = crate::query::dot(v, v).sqrt();
     if !(norm.is_finite() && norm > 0.0) {
         return false;
     }

@@ -1,9 +1,14 @@
 //! Benchmark of the point-cloud map's fusion step and of text queries (a bench binary, not a test).
 //!
 //! `cargo bench -p vlem-maps --bench fusion` fuses one real 640x480 frame (the living-room frame 1,
-//! with 300 segments of random 512-d embeddings) into maps of 100k and 1M points that lie on the
-//! surfaces the frame sees (points of frame 0, jittered by up to 3 mm), then times one text query
-//! over 1M x 512 embeddings. It prints a table of medians; BENCHMARKS.md records the numbers.
+//! with 300 segments of random 11-d or 512-d embeddings) into maps of 100k and 1M points that lie
+//! on the surfaces the frame sees (points of frame 0 in its pixel order, jittered by up to 3 mm), with
+//! each association, without and with downsampling to the budget; beside each case, the memory
+//! floor of its fusion measured in the same run. Then it times one text query over 1M x 512
+//! embeddings. It prints a table of medians; BENCHMARKS.md records the numbers.
+//!
+//! One case at a time, e.g. for a profile: `VLEM_BENCH_DIMS=11 VLEM_BENCH_POINTS=1000000
+//! VLEM_BENCH_ASSOCIATION=projective VLEM_BENCH_NO_QUERY=1` (each list comma-separated).
 #![allow(
     clippy::unwrap_used,
     clippy::expect_used,
@@ -16,10 +21,12 @@ use std::time::Instant;
 
 use rand::rngs::StdRng;
 use rand::{Rng, SeedableRng};
+use rayon::prelude::*;
 use vlem_core::config::DatasetConfig;
 use vlem_core::{EmbeddingMap, MapMetadata, MapSnapshot, Observation, PixelEmbeddings};
-use vlem_maps::point_cloud::{NAME, PointCloudConfig};
+use vlem_maps::point_cloud::{Association, NAME, PointCloudConfig};
 
+/// The dimension of the text query's embeddings (CLIP ViT-B/16).
 const DIM: usize = 512;
 const RUNS: usize = 5;
 
@@ -29,7 +36,6 @@ fn main() {
     let frame0 = source.frame(0).unwrap();
     let frame1 = source.frame(1).unwrap();
     let mut rng = StdRng::seed_from_u64(7);
-    let embeddings = segment_embeddings(&mut rng, frame1.colour.width(), frame1.colour.height());
     let surface = surface_points(&frame0);
     println!(
         "threads: {}; frame 1 has {} valid depth pixels; frame 0 surface {} points",
@@ -37,62 +43,111 @@ fn main() {
         frame1.depth.valid_count(),
         surface.len()
     );
-    println!("| map points | budget | median ms | min ms | fused | inserted | removed |");
-    println!("|---:|---|---:|---:|---:|---:|---:|");
-    for &n in &[100_000usize, 1_000_000] {
-        let snapshot = map_on_surface(&mut rng, &surface, n);
-        for (label, budget) in [("no downsampling", 4 * n), ("at budget N = map size", n)] {
-            let config = PointCloudConfig {
-                max_points: budget,
-                ..PointCloudConfig::default()
+    println!(
+        "| dim | map points | association | budget | median ms | min ms | fused | inserted | removed | floor ms | median / floor |"
+    );
+    println!("|---:|---:|---|---|---:|---:|---:|---:|---:|---:|---:|");
+    // 11-d: the colour-names encoder; 512-d: CLIP ViT-B/16.
+    for dim in env_list("VLEM_BENCH_DIMS", &[11, DIM]) {
+        let embeddings =
+            segment_embeddings(&mut rng, frame1.colour.width(), frame1.colour.height(), dim);
+        for n in env_list("VLEM_BENCH_POINTS", &[100_000, 1_000_000]) {
+            let snapshot = map_on_surface(&mut rng, &surface, n, dim);
+            let mut floor = None;
+            let associations = match std::env::var("VLEM_BENCH_ASSOCIATION").as_deref() {
+                Ok("projective") => vec![Association::Projective],
+                Ok("kd-tree") => vec![Association::KdTree],
+                _ => vec![Association::Projective, Association::KdTree],
             };
-            let mut times = Vec::new();
-            let mut stats = None;
-            for _ in 0..RUNS {
-                let mut map = config.build(Some(DIM)).unwrap();
-                map.restore(snapshot.clone()).unwrap();
-                let t = Instant::now();
-                let s = map
-                    .integrate(&Observation {
-                        frame: &frame1,
-                        pose: frame1.pose.as_ref().unwrap(),
-                        embeddings: Some(&embeddings),
-                    })
-                    .unwrap();
-                times.push(t.elapsed().as_secs_f64() * 1e3);
-                stats = Some(s);
+            for association in associations {
+                for (label, budget) in [("no downsampling", 4 * n), ("at budget N = map size", n)] {
+                    let config = PointCloudConfig {
+                        max_points: budget,
+                        association,
+                        ..PointCloudConfig::default()
+                    };
+                    let mut times = Vec::new();
+                    let mut stats = None;
+                    for _ in 0..RUNS {
+                        let mut map = config.build(Some(dim)).unwrap();
+                        map.restore(snapshot.clone()).unwrap();
+                        // A map being built grows its tables by doubling, so a frame rarely
+                        // reallocates them; a restored one holds exactly its points.
+                        map.reserve(frame1.depth.valid_count());
+                        let t = Instant::now();
+                        let s = map
+                            .integrate(&Observation {
+                                frame: &frame1,
+                                pose: frame1.pose.as_ref().unwrap(),
+                                embeddings: Some(&embeddings),
+                            })
+                            .unwrap();
+                        times.push(t.elapsed().as_secs_f64() * 1e3);
+                        stats = Some(s);
+                    }
+                    let s = stats.unwrap();
+                    times.sort_by(f64::total_cmp);
+                    let floor = *floor.get_or_insert_with(|| memory_floor_ms(s.fused * dim));
+                    println!(
+                        "| {dim} | {n} | {association:?} | {label} | {:.1} | {:.1} | {} | {} | {} | {floor:.1} | {:.2} |",
+                        times[RUNS / 2],
+                        times[0],
+                        s.fused,
+                        s.inserted,
+                        s.removed,
+                        times[RUNS / 2] / floor
+                    );
+                }
             }
-            let s = stats.unwrap();
-            times.sort_by(f64::total_cmp);
-            println!(
-                "| {n} | {label} | {:.0} | {:.0} | {} | {} | {} |",
-                times[RUNS / 2],
-                times[0],
-                s.fused,
-                s.inserted,
-                s.removed
-            );
         }
     }
-    query_benchmark(&mut rng);
+    if std::env::var_os("VLEM_BENCH_NO_QUERY").is_none() {
+        query_benchmark(&mut rng);
+    }
+}
+
+/// The comma-separated numbers in environment variable `name`, `default` where it is unset.
+fn env_list(name: &str, default: &[usize]) -> Vec<usize> {
+    std::env::var(name).map_or_else(
+        |_| default.to_vec(),
+        |v| v.split(',').map(|x| x.trim().parse().unwrap()).collect(),
+    )
+}
+
+/// The fusion's memory floor for `values` fused floats, measured now: the median time of a
+/// parallel pass that reads and writes that many `f32`s once (each fused embedding is read and
+/// written back once), on as many threads as the fusion uses.
+fn memory_floor_ms(values: usize) -> f64 {
+    let mut buffer = vec![1.0f32; values];
+    let mut times = Vec::new();
+    for _ in 0..RUNS {
+        let t = Instant::now();
+        buffer
+            .par_chunks_mut(1 << 16)
+            .for_each(|chunk| chunk.iter_mut().for_each(|x| *x *= 0.999_9));
+        times.push(t.elapsed().as_secs_f64() * 1e3);
+    }
+    std::hint::black_box(&buffer);
+    times.sort_by(f64::total_cmp);
+    times[RUNS / 2]
 }
 
 /// 300 segments (32x32-pixel blocks) with random unit 512-d embeddings, like SAM + CLIP output.
-fn segment_embeddings(rng: &mut StdRng, w: u32, h: u32) -> PixelEmbeddings {
+fn segment_embeddings(rng: &mut StdRng, w: u32, h: u32, dim: usize) -> PixelEmbeddings {
     let blocks_x = w.div_ceil(32);
     let index = (0..w * h)
         .map(|i| (i % w) / 32 + (i / w) / 32 * blocks_x)
         .collect();
     let segments = (blocks_x * h.div_ceil(32)) as usize;
-    let table = random_unit_rows(rng, segments);
-    PixelEmbeddings::from_segments(w, h, DIM, index, table).unwrap()
+    let table = random_unit_rows(rng, segments, dim);
+    PixelEmbeddings::from_segments(w, h, dim, index, table).unwrap()
 }
 
-fn random_unit_rows(rng: &mut StdRng, n: usize) -> Vec<f32> {
-    let mut v: Vec<f32> = (0..n * DIM)
+fn random_unit_rows(rng: &mut StdRng, n: usize, dim: usize) -> Vec<f32> {
+    let mut v: Vec<f32> = (0..n * dim)
         .map(|_| rng.random_range(-1.0f32..1.0))
         .collect();
-    for row in v.chunks_exact_mut(DIM) {
+    for row in v.chunks_exact_mut(dim) {
         vlem_core::embeddings::normalise(row);
     }
     v
@@ -115,27 +170,31 @@ fn surface_points(frame: &vlem_core::Frame) -> Vec<[f32; 3]> {
 }
 
 /// `n` points sampled from the surface with up to 3 mm jitter, random unit embeddings.
-fn map_on_surface(rng: &mut StdRng, surface: &[[f32; 3]], n: usize) -> MapSnapshot {
-    let positions = (0..n)
-        .map(|_| {
-            let p = surface[rng.random_range(0..surface.len())];
-            p.map(|x| x + rng.random_range(-0.003f32..0.003))
-        })
+///
+/// The points are stored in the order of the frame-0 pixels they were drawn from, the row-major
+/// order in which a map inserts a frame's points; a shuffled table would make every fused row a
+/// cache miss that no real map has.
+fn map_on_surface(rng: &mut StdRng, surface: &[[f32; 3]], n: usize, dim: usize) -> MapSnapshot {
+    let mut drawn: Vec<usize> = (0..n).map(|_| rng.random_range(0..surface.len())).collect();
+    drawn.sort_unstable();
+    let positions = drawn
+        .into_iter()
+        .map(|i| surface[i].map(|x| x + rng.random_range(-0.003f32..0.003)))
         .collect();
     MapSnapshot {
         map_kind: NAME.into(),
-        dim: DIM,
+        dim,
         positions,
         colours: vec![[128, 128, 128]; n],
-        embeddings: random_unit_rows(rng, n),
+        embeddings: random_unit_rows(rng, n, dim),
         metadata: MapMetadata::default(),
     }
 }
 
 fn query_benchmark(rng: &mut StdRng) {
     let n = 1_000_000;
-    let embeddings = random_unit_rows(rng, n);
-    let text = random_unit_rows(rng, 1);
+    let embeddings = random_unit_rows(rng, n, DIM);
+    let text = random_unit_rows(rng, 1, DIM);
     let mut out = Vec::new();
     let mut times = Vec::new();
     for _ in 0..10 {

@@ -105,6 +105,15 @@ impl EmbeddingStore {
         }
     }
 
+    /// Reserves room for at least `rows` more rows, like [`Vec::reserve`].
+    pub fn reserve(&mut self, rows: usize) {
+        let n = rows * self.dim;
+        match &mut self.values {
+            Values::F32(v) => v.reserve(n),
+            Values::F16(v) => v.reserve(n),
+        }
+    }
+
     /// Appends `rows` zero rows (to be filled with [`EmbeddingStore::par_update_rows_from`]).
     pub fn grow(&mut self, rows: usize) {
         let n = self.value_count() + rows * self.dim;

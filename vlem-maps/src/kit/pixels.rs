@@ -137,11 +137,57 @@ impl<'a> FramePixels<'a> {
             .flat_map_iter(move |v| this.row(v))
     }
 
-    /// Pixel `(u, v)` if it is one to yield.
+    /// Writes the world point and the linear pixel index of every yielded pixel into
+    /// `positions` and `pixels` (cleared first; row-major, the order of [`FramePixels::iter`]),
+    /// reusing their capacity, and returns the sum of the yielded depths.
+    ///
+    /// Why not `collect`: a map integrates a frame after frame, and fresh vectors of a frame's
+    /// size cost a page fault per 4 KiB on every frame (milliseconds at 640×480). This counts the
+    /// pixels of each row first and then fills each row's slice in parallel.
+    pub fn collect_into(&self, positions: &mut Vec<[f32; 3]>, pixels: &mut Vec<u32>) -> f64 {
+        let rows: Vec<u32> = self.rows().collect();
+        let counts: Vec<usize> = rows
+            .par_iter()
+            .map(|&v| {
+                (0..self.width)
+                    .step_by(self.stride as usize)
+                    .filter(|&u| self.kept_depth(u, v).is_some())
+                    .count()
+            })
+            .collect();
+        let total = counts.iter().sum();
+        positions.clear();
+        pixels.clear();
+        positions.resize(total, [0.0; 3]);
+        pixels.resize(total, 0);
+        let mut row_slices = Vec::with_capacity(rows.len());
+        let (mut positions_left, mut pixels_left) = (&mut positions[..], &mut pixels[..]);
+        for (&v, &n) in rows.iter().zip(&counts) {
+            let (p, p_rest) = std::mem::take(&mut positions_left).split_at_mut(n);
+            let (i, i_rest) = std::mem::take(&mut pixels_left).split_at_mut(n);
+            (positions_left, pixels_left) = (p_rest, i_rest);
+            row_slices.push((v, p, i));
+        }
+        row_slices
+            .into_par_iter()
+            .map(|(v, positions, pixels)| {
+                let mut depth_sum = 0.0f64;
+                for ((position, index), pixel) in
+                    positions.iter_mut().zip(pixels.iter_mut()).zip(self.row(v))
+                {
+                    *position = pixel.world;
+                    *index = pixel.index;
+                    depth_sum += f64::from(pixel.depth);
+                }
+                depth_sum
+            })
+            .sum()
+    }
+
+    /// The depth of pixel `(u, v)` if it is one to yield.
     #[inline]
-    fn pixel(&self, u: u32, v: u32) -> Option<Pixel> {
-        let index = v * self.width + u;
-        let z = valid_depth(self.depth[index as usize])?;
+    fn kept_depth(&self, u: u32, v: u32) -> Option<f32> {
+        let z = valid_depth(self.depth[(v * self.width + u) as usize])?;
         if z > self.max_depth {
             return None;
         }
@@ -150,6 +196,13 @@ impl<'a> FramePixels<'a> {
         {
             return None;
         }
+        Some(z)
+    }
+
+    /// Pixel `(u, v)` if it is one to yield.
+    #[inline]
+    fn pixel(&self, u: u32, v: u32) -> Option<Pixel> {
+        let z = self.kept_depth(u, v)?;
         let camera = [
             (u as f32 - self.cx) * z / self.fx,
             (v as f32 - self.cy) * z / self.fy,
@@ -158,7 +211,7 @@ impl<'a> FramePixels<'a> {
         Some(Pixel {
             u,
             v,
-            index,
+            index: v * self.width + u,
             depth: z,
             world: self.to_world.apply(camera),
         })
@@ -174,10 +227,10 @@ pub fn embedding<'s>(
     pixel: u32,
     scratch: &'s mut [f32],
 ) -> Option<&'s [f32]> {
+    if let Some(row) = embeddings.segment_row_at_index(pixel as usize) {
+        return Some(row);
+    }
     let width = embeddings.width();
     let (u, v) = (pixel % width, pixel / width);
-    match embeddings.segment_row(u, v) {
-        Some(row) => Some(row),
-        None => embeddings.embedding_at(u, v, scratch).then_some(&*scratch),
-    }
+    embeddings.embedding_at(u, v, scratch).then_some(&*scratch)
 }

@@ -3,7 +3,8 @@
 //! Per frame:
 //! 1. back-project every valid depth pixel that has an embedding into the map frame (the set `P`);
 //! 2. for every map point in the current view, find its nearest new point within `max_distance`
-//!    (a k-d tree over `P`), and fuse `e_M := (1 - w) e_P + w e_M`, renormalised (w = `map_weight`);
+//!    (by projective association in a pixel window, or a k-d tree over `P`: see
+//!    [`Association`]), and fuse `e_M := (1 - w) e_P + w e_M`, renormalised (w = `map_weight`);
 //!    colours are fused with the same weights;
 //! 3. insert the new points that no map point chose as its nearest;
 //! 4. if the map holds more than `max_points` (the paper's `N_M`), downsample it to a uniform
@@ -16,7 +17,8 @@
 
 use std::sync::atomic::{AtomicBool, Ordering};
 
-use kiddo::{ImmutableKdTree, SquaredEuclidean};
+mod association;
+
 use rayon::prelude::*;
 use vlem_core::embeddings::normalise;
 use vlem_core::{
@@ -24,15 +26,20 @@ use vlem_core::{
     MapSnapshot, Observation, RigidF32, StageKind, parse_params,
 };
 
+pub use self::association::Association;
+use self::association::{Cell, FrameView, NONE};
 use crate::error::MapError;
 use crate::kit::{
-    FramePixels, Pixel, at_least_one, check_observation, check_snapshot, embedding,
+    FramePixels, at_least_one, check_observation, check_snapshot, embedding, invalid_parameter,
     positive_metres, unit_weight,
 };
 use crate::storage::{EmbeddingStore, fuse_into};
 
 /// The registered name.
 pub const NAME: &str = "point-cloud";
+
+/// The largest [`PointCloudConfig::window`]: beyond it a window costs more than the k-d tree.
+const MAX_WINDOW: u32 = 32;
 
 crate::map_config! {
     /// `[map] kind = "point-cloud"` parameters.
@@ -43,6 +50,14 @@ crate::map_config! {
         pub max_distance: f32 = 0.02,
         /// Weight `w` of the map embedding in the fusion; default 0.5 (the paper's value).
         pub map_weight: f32 = 0.5,
+        /// How a map point finds its correspondence: `"projective"` (default: the new points
+        /// back-projected from the pixels around its projection) or `"kd-tree"` (the exact
+        /// nearest neighbour in 3D, several times slower).
+        pub association: Association = Association::Projective,
+        /// Projective association: the half-width of the pixel window searched around a map
+        /// point's projection, in integrated pixels (every `pixel_stride`-th); default 3 (7×7).
+        /// The search stops early where `max_distance` or a closer point rules a ring out.
+        pub window: u32 = 3,
     }
 }
 
@@ -56,6 +71,13 @@ impl PointCloudConfig {
         at_least_one(NAME, "max_points", self.max_points)?;
         positive_metres(NAME, "max_distance", self.max_distance)?;
         unit_weight(NAME, "map_weight", self.map_weight)?;
+        if self.window > MAX_WINDOW {
+            return Err(invalid_parameter(
+                NAME,
+                "window",
+                &format!("must be at most {MAX_WINDOW} pixels"),
+            ));
+        }
         let dim = self.common().validate(NAME, encoder_dim)?;
         Ok(PointCloudMap::new(self.clone(), dim))
     }
@@ -84,15 +106,58 @@ pub struct PointCloudMap {
     /// grows, so the density of the map never rises again once bounded.
     voxel_size: f32,
     frames: usize,
+    /// Per-frame buffers, kept for their allocations.
+    scratch: Scratch,
 }
 
 /// The new points of one frame, in the map frame.
+#[derive(Clone, Default)]
 struct Observed {
     positions: Vec<[f32; 3]>,
     /// Linear pixel index `v * width + u` of each point.
     pixels: Vec<u32>,
     /// Mean depth, for the first downsampling resolution.
     mean_depth: f32,
+}
+
+/// The buffers one integration fills, kept between frames: fresh frame-sized vectors would cost a
+/// page fault per 4 KiB on every frame.
+#[derive(Clone, Default)]
+struct Scratch {
+    observed: Observed,
+    /// Per map point, its correspondence's index in `observed` ([`NONE`] for none).
+    matches: Vec<u32>,
+    /// The projective association's pixel grid.
+    grid: Vec<Cell>,
+    /// Per new point, whether a map point chose it.
+    chosen: Vec<bool>,
+}
+
+/// `x.round() as u8` for `x` in `[0, 255]`, without the libm call `round` is on x86-64's baseline
+/// (a quarter of the colour fusion's time): the fractional part `x - trunc(x)` is exact, and
+/// halves round up, as `round` does for non-negative values.
+#[inline]
+fn round_colour(x: f32) -> u8 {
+    let whole = x as u8;
+    whole.saturating_add(u8::from(x - f32::from(whole) >= 0.5))
+}
+
+impl Scratch {
+    /// The heap bytes the kept buffers hold (they are part of the map's memory between frames).
+    fn memory_bytes(&self) -> usize {
+        use std::mem::size_of;
+        self.observed.positions.capacity() * size_of::<[f32; 3]>()
+            + self.observed.pixels.capacity() * size_of::<u32>()
+            + self.matches.capacity() * size_of::<u32>()
+            + self.grid.capacity() * size_of::<Cell>()
+            + self.chosen.capacity() * size_of::<bool>()
+    }
+}
+
+impl std::fmt::Debug for Scratch {
+    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
+        f.write_str("Scratch { .. }")
+    }
 }
 
 impl PointCloudMap {
@@ -106,7 +171,17 @@ impl PointCloudMap {
             colours: Vec::new(),
             voxel_size: 0.0,
             frames: 0,
+            scratch: Scratch::default(),
         }
+    }
+
+    /// Reserves room for at least `additional` more points, like [`Vec::reserve`], so the next
+    /// frames' insertions do not reallocate the tables (a map restored from a snapshot holds
+    /// exactly its points).
+    pub fn reserve(&mut self, additional: usize) {
+        self.positions.reserve(additional);
+        self.colours.reserve(additional);
+        self.embeddings.reserve(additional);
     }
 
     /// Positions of all points.
@@ -128,60 +203,99 @@ impl PointCloudMap {
         check_observation(self.dim, obs)
     }
 
-    fn observe(&self, obs: &Observation<'_>) -> Observed {
-        let points: Vec<Pixel> = FramePixels::new(obs, &self.config.common())
-            .par_iter()
-            .collect();
-        let mean_depth = if points.is_empty() {
+    /// Back-projects the pixels of `obs` into `new`.
+    fn observe(&self, obs: &Observation<'_>, new: &mut Observed) {
+        let depth_sum = FramePixels::new(obs, &self.config.common())
+            .collect_into(&mut new.positions, &mut new.pixels);
+        new.mean_depth = if new.positions.is_empty() {
             0.0
         } else {
-            points.iter().map(|p| p.depth).sum::<f32>() / points.len() as f32
+            (depth_sum / new.positions.len() as f64) as f32
         };
-        let (positions, pixels) = points.into_iter().map(|p| (p.world, p.index)).unzip();
-        Observed {
-            positions,
-            pixels,
-            mean_depth,
-        }
     }
 
-    /// For every map point in the view of `obs`, the index of its nearest new point within
-    /// `max_distance`; `u32::MAX` for none.
-    fn correspondences(&self, obs: &Observation<'_>, new: &Observed) -> Vec<u32> {
-        let tree: ImmutableKdTree<f32, 3> = match ImmutableKdTree::new_from_slice(&new.positions) {
-            Ok(tree) => tree,
-            // Only fails for an empty slice, which the caller excludes; no correspondences then.
-            Err(_) => return vec![u32::MAX; self.positions.len()],
+    /// Writes into `matches`, for every map point in the view of `obs`, the index of its nearest
+    /// new point within `max_distance` by `association`; [`NONE`] for none.
+    fn correspondences(
+        &self,
+        obs: &Observation<'_>,
+        new: &Observed,
+        association: Association,
+        grid: &mut Vec<Cell>,
+        matches: &mut Vec<u32>,
+    ) {
+        FrameView {
+            intrinsics: &obs.frame.intrinsics,
+            to_camera: RigidF32::from_pose(&obs.pose.inverse()),
+            positions: &new.positions,
+            pixels: &new.pixels,
+            stride: self.config.pixel_stride,
+        }
+        .correspondences(
+            &self.positions,
+            self.config.max_distance,
+            association,
+            self.config.window,
+            grid,
+            matches,
+        );
+    }
+
+    /// The correspondence every map point would take in `obs` by `association`, without
+    /// integrating: the linear pixel index (`v * width + u`) of the frame's point it would fuse
+    /// with, `None` for map points out of view or without a point within `max_distance`. For
+    /// comparing the two associations (`cargo bench -p vlem-maps --bench association`).
+    ///
+    /// # Errors
+    /// As [`EmbeddingMap::integrate`] for an observation that does not fit the map.
+    pub fn correspondence_pixels(
+        &self,
+        obs: &Observation<'_>,
+        association: Association,
+    ) -> vlem_core::Result<Vec<Option<u32>>> {
+        self.check(obs)
+            .map_err(|e| CoreError::stage(StageKind::Map, NAME, e))?;
+        let (mut new, mut grid, mut matches) = (Observed::default(), Vec::new(), Vec::new());
+        self.observe(obs, &mut new);
+        self.correspondences(obs, &new, association, &mut grid, &mut matches);
+        Ok(matches
+            .into_iter()
+            .map(|m| (m != NONE).then(|| new.pixels[m as usize]))
+            .collect())
+    }
+
+    /// One integration (of a checked observation) with the frame buffers in `scratch`.
+    fn integrate_with(&mut self, obs: &Observation<'_>, scratch: &mut Scratch) -> IntegrationStats {
+        let Scratch {
+            observed: new,
+            matches,
+            grid,
+            chosen,
+        } = scratch;
+        self.observe(obs, new);
+        let mut stats = IntegrationStats {
+            observed: new.positions.len(),
+            ..IntegrationStats::default()
         };
-        let k = &obs.frame.intrinsics;
-        let to_camera = RigidF32::from_pose(&obs.pose.inverse());
-        let (fx, fy, cx, cy) = (k.fx as f32, k.fy as f32, k.cx as f32, k.cy as f32);
-        let (w, h) = (k.width as f32, k.height as f32);
-        let r2 = self.config.max_distance * self.config.max_distance;
-        self.positions
-            .par_iter()
-            .with_min_len(4096)
-            .map(|&q| {
-                let c = to_camera.apply(q);
-                if c[2] <= 0.0 {
-                    return u32::MAX;
-                }
-                let (u, v) = (fx * c[0] / c[2] + cx, fy * c[1] / c[2] + cy);
-                // Half a pixel of slack: points back-projected from the border pixels are in view.
-                if !(u >= -0.5 && v >= -0.5 && u < w - 0.5 && v < h - 0.5) {
-                    return u32::MAX;
-                }
-                let nearest = tree
-                    .query(&q)
-                    .nearest_one::<SquaredEuclidean<f32>>()
-                    .execute();
-                if nearest.distance <= r2 {
-                    nearest.item
-                } else {
-                    u32::MAX
-                }
-            })
-            .collect()
+        self.frames += 1;
+        if new.positions.is_empty() {
+            return stats;
+        }
+        chosen.clear();
+        chosen.resize(new.positions.len(), false);
+        if !self.positions.is_empty() {
+            self.correspondences(obs, new, self.config.association, grid, matches);
+            for &m in matches.iter().filter(|m| **m != NONE) {
+                chosen[m as usize] = true;
+                stats.fused += 1;
+            }
+            self.fuse(obs, new, matches);
+        }
+        stats.inserted = self.insert(obs, new, chosen);
+        let footprint =
+            new.mean_depth / obs.frame.intrinsics.fx as f32 * self.config.pixel_stride as f32;
+        stats.removed = self.enforce_budget(footprint);
+        stats
     }
 
     fn fuse(&mut self, obs: &Observation<'_>, new: &Observed, matches: &[u32]) {
@@ -190,7 +304,7 @@ impl PointCloudMap {
         let fuse_colour = |c: &mut [u8; 3], pixel: u32| {
             let p = colour.at_index(pixel as usize);
             for k in 0..3 {
-                c[k] = ((1.0 - w) * f32::from(p[k]) + w * f32::from(c[k])).round() as u8;
+                c[k] = round_colour((1.0 - w) * f32::from(p[k]) + w * f32::from(c[k]));
             }
         };
         // Colours first (always), embeddings next: the two tables are updated in separate passes.
@@ -198,7 +312,7 @@ impl PointCloudMap {
             .par_iter_mut()
             .zip(matches.par_iter())
             .with_min_len(1024)
-            .filter(|(_, m)| **m != u32::MAX)
+            .filter(|(_, m)| **m != NONE)
             .for_each(|(c, &m)| fuse_colour(c, new.pixels[m as usize]));
         let Some(embeddings) = obs.embeddings.filter(|_| self.dim > 0) else {
             return;
@@ -209,7 +323,7 @@ impl PointCloudMap {
             || vec![0.0f32; dim],
             |scratch, i, e_map| {
                 let m = matches[i];
-                if m == u32::MAX {
+                if m == NONE {
                     return false;
                 }
                 match embedding(embeddings, new.pixels[m as usize], &mut scratch[..]) {
@@ -496,28 +610,11 @@ impl EmbeddingMap for PointCloudMap {
     fn integrate(&mut self, obs: &Observation<'_>) -> vlem_core::Result<IntegrationStats> {
         self.check(obs)
             .map_err(|e| CoreError::stage(StageKind::Map, NAME, e))?;
-        let new = self.observe(obs);
-        let mut stats = IntegrationStats {
-            observed: new.positions.len(),
-            ..IntegrationStats::default()
-        };
-        self.frames += 1;
-        if new.positions.is_empty() {
-            return Ok(stats);
-        }
-        let mut chosen = vec![false; new.positions.len()];
-        if !self.positions.is_empty() {
-            let matches = self.correspondences(obs, &new);
-            for &m in matches.iter().filter(|m| **m != u32::MAX) {
-                chosen[m as usize] = true;
-                stats.fused += 1;
-            }
-            self.fuse(obs, &new, &matches);
-        }
-        stats.inserted = self.insert(obs, &new, &chosen);
-        let footprint =
-            new.mean_depth / obs.frame.intrinsics.fx as f32 * self.config.pixel_stride as f32;
-        stats.removed = self.enforce_budget(footprint);
+        // The buffers are taken out for the frame (so `self` can be borrowed beside them) and put
+        // back at the end; a frame that fails its checks above never takes them.
+        let mut scratch = std::mem::take(&mut self.scratch);
+        let stats = self.integrate_with(obs, &mut scratch);
+        self.scratch = scratch;
         Ok(stats)
     }
 
@@ -536,6 +633,7 @@ impl EmbeddingMap for PointCloudMap {
         self.positions.capacity() * std::mem::size_of::<[f32; 3]>()
             + self.colours.capacity() * 3
             + self.embeddings.memory_bytes()
+            + self.scratch.memory_bytes()
     }
 
     fn similarity(&self, text: &[f32], out: &mut Vec<f32>) -> vlem_core::Result<()> {
@@ -810,12 +908,70 @@ mod tests {
             s32.iter().any(|x| (x - s32[0]).abs() > 0.01),
             "the test needs distinct scores"
         );
-        let embedding_bytes = |m: &PointCloudMap| m.memory_bytes() - m.len() * 15;
+        // Positions and colours are 15 bytes a point; the frame buffers are the same at both.
+        let embedding_bytes =
+            |m: &PointCloudMap| m.memory_bytes() - m.len() * 15 - m.scratch.memory_bytes();
         assert_eq!(embedding_bytes(&maps[0]), 2 * embedding_bytes(&maps[1]));
     }
 
     #[test]
+    fn colour_rounding_is_round_on_every_fused_value() {
+        // Every value the fusion can produce at a few weights, and the halves and their neighbours.
+        for w in [0.0f32, 0.3, 0.5, 0.7, 1.0] {
+            for p in 0..=255u8 {
+                for c in 0..=255u8 {
+                    let x = (1.0 - w) * f32::from(p) + w * f32::from(c);
+                    assert_eq!(round_colour(x), x.round() as u8, "{x}");
+                }
+            }
+        }
+        for k in 0..255u16 {
+            let half = f32::from(k) + 0.5;
+            for x in [half, half.next_down(), half.next_up()] {
+                assert_eq!(round_colour(x), x.round() as u8, "{x}");
+            }
+        }
+    }
+
+    #[test]
+    fn both_associations_fuse_the_same_points_on_a_plane() {
+        let e = uniform([1.0, 0.0, 0.0, 0.0]);
+        let f = plane(1.0);
+        // A fifth of a pixel (1 cm) to the side: every map point projects between two pixels.
+        let shifted = Pose::from_parts(
+            nalgebra::Translation3::new(0.01, 0.0, 0.0),
+            nalgebra::UnitQuaternion::identity(),
+        );
+        let mut results = Vec::new();
+        for association in [Association::Projective, Association::KdTree] {
+            let mut m = map(PointCloudConfig {
+                association,
+                ..PointCloudConfig::default()
+            });
+            integrate(&mut m, &f, &Pose::identity(), &e);
+            let obs = Observation {
+                frame: &f,
+                pose: &shifted,
+                embeddings: Some(&e),
+            };
+            results.push(m.correspondence_pixels(&obs, association).unwrap());
+        }
+        assert_eq!(results[0], results[1]);
+        assert!(results[0].iter().filter(|m| m.is_some()).count() > 100);
+    }
+
+    #[test]
     fn invalid_parameters_are_named() {
+        let err = PointCloudConfig {
+            window: 33,
+            ..PointCloudConfig::default()
+        }
+        .build(Some(DIM))
+        .unwrap_err();
+        assert_eq!(
+            err.to_string(),
+            "map `point-cloud`: parameter `window` must be at most 32 pixels"
+        );
         let err = PointCloudConfig {
             map_weight: 1.5,
             ..PointCloudConfig::default()

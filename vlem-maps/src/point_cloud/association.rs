@@ -1,0 +1,276 @@
+//! Correspondences between the map's points and a frame's new points: for every map point in the
+//! frame's view, the nearest new point within `max_distance`.
+//!
+//! Why two ways: the paper's rule is the nearest neighbour in 3D, which a k-d tree over the new
+//! points answers exactly but at about 0.3 µs a query, so one frame against a 1M-point map costs
+//! about 300 ms on two cores. Dense fusion systems instead *project* each map point into the new
+//! frame and look only at the new points back-projected from the pixels around it ("projective
+//! association"): O(1) per point with an image-sized index, a few milliseconds a frame. It
+//! finds the same neighbour whenever that neighbour lies within the pixel window, which on a
+//! surface seen from nearby it does (`BENCHMARKS.md` measures how often on the shared sequence);
+//! the k-d tree stays as `association = "kd-tree"`.
+//!
+//! The window search is exact within its window and prunes by a bound: every point back-projected
+//! from a pixel lies on that pixel's ray, and the distance from a map point `q` to a ray at angle
+//! `θ` from `q`'s own is at least `|q| sin θ`; with rays written as `(x, y, 1)`,
+//! `|a × b| ≥ |(x_a, y_a) − (x_b, y_b)|`, so for the pixels of ring `k` (Chebyshev distance `k`
+//! from the projection's pixel, hence at least `k − ½` pixels away along one axis)
+//! `|q| sin θ ≥ z_q (k − ½) s / (f |b|)`, with `z_q` the depth of `q`, `s` the pixel stride, `f`
+//! the larger focal length and `|b|` bounded over the window. Rings whose bound exceeds the
+//! best distance so far (or `max_distance`) are skipped, so a map point on the observed surface
+//! costs one or two rings.
+
+use kiddo::{ImmutableKdTree, SquaredEuclidean};
+use rayon::prelude::*;
+use vlem_core::{Intrinsics, RigidF32};
+
+/// How a map point finds its correspondence in a new frame (`[map] association`).
+#[derive(Clone, Copy, Debug, Default, PartialEq, Eq, serde::Deserialize)]
+#[serde(rename_all = "kebab-case")]
+pub enum Association {
+    /// Project the map point into the frame and take the nearest new point back-projected from
+    /// the pixels within `window` integrated pixels of the projection (the default).
+    #[default]
+    Projective,
+    /// The nearest new point in 3D from a k-d tree over the frame's points (exact, slower).
+    KdTree,
+}
+
+/// No correspondence.
+pub(super) const NONE: u32 = u32::MAX;
+
+/// What the correspondence search needs of a frame: its camera, pose and new points.
+pub(super) struct FrameView<'a> {
+    pub intrinsics: &'a Intrinsics,
+    /// World to camera.
+    pub to_camera: RigidF32,
+    /// The new points in world coordinates.
+    pub positions: &'a [[f32; 3]],
+    /// The linear pixel index `v * width + u` of each new point.
+    pub pixels: &'a [u32],
+    /// The pixel stride the points were taken at (the pixels are multiples of it).
+    pub stride: u32,
+}
+
+impl FrameView<'_> {
+    /// Writes into `out`, for every map point, the index of its nearest new point within
+    /// `max_distance` ([`NONE`] for none, and for map points outside the view). `grid` is the
+    /// projective association's pixel grid, kept between frames for its allocation.
+    pub fn correspondences(
+        &self,
+        map: &[[f32; 3]],
+        max_distance: f32,
+        association: Association,
+        window: u32,
+        grid: &mut Vec<Cell>,
+        out: &mut Vec<u32>,
+    ) {
+        out.clear();
+        if self.positions.is_empty() {
+            out.resize(map.len(), NONE);
+            return;
+        }
+        let r2 = max_distance * max_distance;
+        match association {
+            Association::KdTree => {
+                let tree: ImmutableKdTree<f32, 3> =
+                    match ImmutableKdTree::new_from_slice(self.positions) {
+                        Ok(tree) => tree,
+                        // Only fails for an empty slice, excluded above.
+                        Err(_) => {
+                            out.resize(map.len(), NONE);
+                            return;
+                        }
+                    };
+                self.for_each_in_view(map, out, |q, _| {
+                    let nearest = tree
+                        .query(&q)
+                        .nearest_one::<SquaredEuclidean<f32>>()
+                        .execute();
+                    if nearest.distance <= r2 {
+                        nearest.item
+                    } else {
+                        NONE
+                    }
+                })
+            }
+            Association::Projective => {
+                let grid = PixelGrid::new(self, grid);
+                self.for_each_in_view(map, out, |q, projection| {
+                    grid.nearest(q, projection, r2, window)
+                });
+            }
+        }
+    }
+
+    /// Maps `find(world point, its projection)` over the map points in the view, [`NONE`] for
+    /// the others. In view: in front of the camera and projecting within half a pixel of the
+    /// image (points back-projected from the border pixels are in view).
+    fn for_each_in_view(
+        &self,
+        map: &[[f32; 3]],
+        out: &mut Vec<u32>,
+        find: impl Fn([f32; 3], Projection) -> u32 + Sync,
+    ) {
+        let k = self.intrinsics;
+        let (fx, fy, cx, cy) = (k.fx as f32, k.fy as f32, k.cx as f32, k.cy as f32);
+        let (w, h) = (k.width as f32, k.height as f32);
+        map.par_iter()
+            .with_min_len(4096)
+            .map(|&q| {
+                let c = self.to_camera.apply(q);
+                if c[2] <= 0.0 {
+                    return NONE;
+                }
+                let inverse_depth = 1.0 / c[2];
+                let (x, y) = (c[0] * inverse_depth, c[1] * inverse_depth);
+                let (u, v) = (fx * x + cx, fy * y + cy);
+                if !(u >= -0.5 && v >= -0.5 && u < w - 0.5 && v < h - 0.5) {
+                    return NONE;
+                }
+                find(
+                    q,
+                    Projection {
+                        u,
+                        v,
+                        x,
+                        y,
+                        depth: c[2],
+                    },
+                )
+            })
+            .collect_into_vec(out);
+    }
+}
+
+/// Where a map point lands in the frame.
+#[derive(Clone, Copy)]
+struct Projection {
+    /// Pixel coordinates.
+    u: f32,
+    v: f32,
+    /// Normalised image coordinates `x / z`, `y / z`.
+    x: f32,
+    y: f32,
+    /// Camera-frame depth.
+    depth: f32,
+}
+
+/// One cell of the projective association's pixel grid: 16 bytes, one load per candidate.
+#[derive(Clone, Copy, Debug)]
+pub(super) struct Cell {
+    /// The world point; `x` is NaN for a pixel without one.
+    position: [f32; 3],
+    index: u32,
+}
+
+/// The new points on the frame's stride grid: cell `(u / s, v / s)` holds the point
+/// back-projected from pixel `(u, v)` and its index.
+struct PixelGrid<'g> {
+    cells: &'g [Cell],
+    columns: usize,
+    rows: usize,
+    stride: f32,
+    inverse_stride: f32,
+    /// `1 / fx`, `1 / fy` and the larger focal length, for the pruning bound.
+    inverse_fx: f32,
+    inverse_fy: f32,
+    focal: f32,
+}
+
+impl<'g> PixelGrid<'g> {
+    /// The grid of `view`'s points, in `cells` (resized, its allocation reused).
+    fn new(view: &FrameView<'_>, cells: &'g mut Vec<Cell>) -> Self {
+        let k = view.intrinsics;
+        let stride = view.stride.max(1);
+        let columns = k.width.div_ceil(stride) as usize;
+        let rows = k.height.div_ceil(stride) as usize;
+        let empty = Cell {
+            position: [f32::NAN; 3],
+            index: NONE,
+        };
+        cells.clear();
+        cells.resize(columns * rows, empty);
+        for (i, (p, &pixel)) in view.positions.iter().zip(view.pixels).enumerate() {
+            let cell = if stride == 1 {
+                pixel as usize
+            } else {
+                let (u, v) = (pixel % k.width, pixel / k.width);
+                (v / stride) as usize * columns + (u / stride) as usize
+            };
+            if let Some(slot) = cells.get_mut(cell) {
+                *slot = Cell {
+                    position: *p,
+                    index: i as u32,
+                };
+            }
+        }
+        Self {
+            cells: &cells[..],
+            columns,
+            rows,
+            stride: stride as f32,
+            inverse_stride: 1.0 / stride as f32,
+            inverse_fx: 1.0 / k.fx as f32,
+            inverse_fy: 1.0 / k.fy as f32,
+            focal: k.fx.max(k.fy) as f32,
+        }
+    }
+
+    /// The index of the nearest point to `q` within `sqrt(r2)` among the cells within `window`
+    /// of the projection's cell, [`NONE`] for none.
+    #[inline]
+    fn nearest(&self, q: [f32; 3], p: Projection, r2: f32, window: u32) -> u32 {
+        let (columns, rows) = (self.columns as i64, self.rows as i64);
+        // The nearest cell; `+ 0.5` then truncation rounds the non-negative values exactly like
+        // `round` (a projection in view is at least -0.5 pixels), without a libm call.
+        let gu = ((p.u * self.inverse_stride + 0.5) as i64).clamp(0, columns - 1);
+        let gv = ((p.v * self.inverse_stride + 0.5) as i64).clamp(0, rows - 1);
+        let mut best = r2;
+        let mut found = NONE;
+        let visit = |cu: i64, cv: i64, best: &mut f32, found: &mut u32| {
+            // The loops below keep (cu, cv) inside the grid.
+            let cell = self.cells[(cv * columns + cu) as usize];
+            let point = cell.position;
+            let d = [point[0] - q[0], point[1] - q[1], point[2] - q[2]];
+            let d2 = d[0] * d[0] + d[1] * d[1] + d[2] * d[2];
+            // NaN (an empty cell) compares false.
+            if d2 <= *best {
+                *best = d2;
+                *found = cell.index;
+            }
+        };
+        visit(gu, gv, &mut best, &mut found);
+        if window == 0 {
+            return found;
+        }
+        // |b| over the window: the largest ray (x, y, 1) of a cell in it.
+        let reach = window as f32 * self.stride;
+        let bx = p.x.abs() + reach * self.inverse_fx;
+        let by = p.y.abs() + reach * self.inverse_fy;
+        let per_ring = p.depth * self.stride / (self.focal * (1.0 + bx * bx + by * by).sqrt());
+        for k in 1..=i64::from(window) {
+            let bound = (k as f32 - 0.5) * per_ring;
+            if bound * bound > best {
+                break;
+            }
+            let (u0, u1) = ((gu - k).max(0), (gu + k).min(columns - 1));
+            let (v0, v1) = ((gv - k).max(0), (gv + k).min(rows - 1));
+            for cv in [gv - k, gv + k] {
+                if (0..rows).contains(&cv) {
+                    for cu in u0..=u1 {
+                        visit(cu, cv, &mut best, &mut found);
+                    }
+                }
+            }
+            for cu in [gu - k, gu + k] {
+                if (0..columns).contains(&cu) {
+                    for cv in (gv - k + 1).max(v0)..=(gv + k - 1).min(v1) {
+                        visit(cu, cv, &mut best, &mut found);
+                    }
+                }
+            }
+        }
+        found
+    }
+}
