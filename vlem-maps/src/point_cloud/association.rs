@@ -274,3 +274,99 @@ impl<'g> PixelGrid<'g> {
         found
     }
 }
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use rand::{Rng, SeedableRng};
+
+    /// The nearest point within `sqrt(r2)` among the cells within Chebyshev distance `window` of
+    /// the projection's cell, by looking at every one of them.
+    fn brute_force(grid: &PixelGrid<'_>, q: [f32; 3], p: Projection, r2: f32, window: i64) -> u32 {
+        let gu = ((p.u * grid.inverse_stride + 0.5) as i64).clamp(0, grid.columns as i64 - 1);
+        let gv = ((p.v * grid.inverse_stride + 0.5) as i64).clamp(0, grid.rows as i64 - 1);
+        let (mut best, mut found) = (r2, NONE);
+        for cv in (gv - window).max(0)..=(gv + window).min(grid.rows as i64 - 1) {
+            for cu in (gu - window).max(0)..=(gu + window).min(grid.columns as i64 - 1) {
+                let cell = grid.cells[cv as usize * grid.columns + cu as usize];
+                let d2: f32 = (0..3).map(|k| (cell.position[k] - q[k]).powi(2)).sum();
+                if d2 < best {
+                    (best, found) = (d2, cell.index);
+                }
+            }
+        }
+        found
+    }
+
+    #[test]
+    fn the_pruned_window_search_finds_the_nearest_point_in_the_window() {
+        let mut rng = rand::rngs::StdRng::seed_from_u64(11);
+        for stride in [1u32, 2, 3] {
+            let intrinsics = Intrinsics {
+                width: 64,
+                height: 48,
+                fx: 52.5,
+                fy: 52.0,
+                cx: 31.5,
+                cy: 23.5,
+            };
+            // A rough surface seen from the identity pose, some pixels without depth.
+            let (mut positions, mut pixels) = (Vec::new(), Vec::new());
+            for v in (0..intrinsics.height).step_by(stride as usize) {
+                for u in (0..intrinsics.width).step_by(stride as usize) {
+                    if rng.random_bool(0.1) {
+                        continue;
+                    }
+                    let z = 1.0 + 0.3 * (u as f32 * 0.2).sin() + rng.random_range(0.0..0.05);
+                    let x = (u as f32 - 31.5) * z / 52.5;
+                    let y = (v as f32 - 23.5) * z / 52.0;
+                    positions.push([x, y, z]);
+                    pixels.push(v * intrinsics.width + u);
+                }
+            }
+            let view = FrameView {
+                intrinsics: &intrinsics,
+                to_camera: RigidF32::from_pose(&vlem_core::Pose::identity()),
+                positions: &positions,
+                pixels: &pixels,
+                stride,
+            };
+            let mut cells = Vec::new();
+            let grid = PixelGrid::new(&view, &mut cells);
+            // Map points near the surface (most of them) and anywhere in the view.
+            let map: Vec<[f32; 3]> = (0..4000)
+                .map(|i| {
+                    let p = positions[rng.random_range(0..positions.len())];
+                    let jitter = if i % 4 == 0 { 0.2 } else { 0.02 };
+                    p.map(|x| x + rng.random_range(-jitter..jitter))
+                })
+                .collect();
+            for window in [0u32, 1, 3] {
+                for max_distance in [0.01f32, 0.05, 0.3] {
+                    let r2 = max_distance * max_distance;
+                    let mut out = Vec::new();
+                    view.for_each_in_view(&map, &mut out, |q, p| grid.nearest(q, p, r2, window));
+                    let mut expected = Vec::new();
+                    view.for_each_in_view(&map, &mut expected, |q, p| {
+                        brute_force(&grid, q, p, r2, i64::from(window))
+                    });
+                    let distance = |i: u32, q: [f32; 3]| {
+                        (i != NONE).then(|| {
+                            let p = positions[i as usize];
+                            (0..3).map(|k| (p[k] - q[k]).powi(2)).sum::<f32>()
+                        })
+                    };
+                    for ((a, b), q) in out.iter().zip(&expected).zip(&map) {
+                        // Equal distances may pick different points; the distances must agree.
+                        assert_eq!(
+                            distance(*a, *q),
+                            distance(*b, *q),
+                            "stride {stride}, window {window}, max distance {max_distance}"
+                        );
+                    }
+                    assert!(expected.iter().any(|m| *m != NONE));
+                }
+            }
+        }
+    }
+}

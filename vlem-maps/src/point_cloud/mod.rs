@@ -18,6 +18,7 @@
 use std::sync::atomic::{AtomicBool, Ordering};
 
 mod association;
+mod voxel_groups;
 
 use rayon::prelude::*;
 use vlem_core::embeddings::normalise;
@@ -28,6 +29,7 @@ use vlem_core::{
 
 pub use self::association::Association;
 use self::association::{Cell, FrameView, NONE};
+use self::voxel_groups::{KEY_AXIS_VOXELS, VoxelGroups, bounding_box};
 use crate::error::MapError;
 use crate::kit::{
     FramePixels, at_least_one, check_observation, check_snapshot, embedding, invalid_parameter,
@@ -427,7 +429,7 @@ impl PointCloudMap {
             .max(footprint * 0.25)
             .max(1e-4)
             .max(extent / KEY_AXIS_VOXELS);
-        let mut groups = VoxelGroups::new(&self.positions, lo, origin);
+        let mut groups = VoxelGroups::new(&self.positions, lo, origin, extent);
         if groups.count > budget {
             // Grow until the budget holds; on surfaces the count falls with the voxel area. At
             // the latest a voxel larger than the bounding box holds everything in one.
@@ -437,7 +439,7 @@ impl PointCloudMap {
                 if !hi.is_finite() {
                     break None;
                 }
-                let g = VoxelGroups::new(&self.positions, hi, origin);
+                let g = VoxelGroups::new(&self.positions, hi, origin, extent);
                 if g.count <= budget {
                     break Some(g);
                 }
@@ -456,7 +458,7 @@ impl PointCloudMap {
             groups = found;
             while hi / lo > 1.05 {
                 let mid = (lo * hi).sqrt();
-                let g = VoxelGroups::new(&self.positions, mid, origin);
+                let g = VoxelGroups::new(&self.positions, mid, origin, extent);
                 if g.count <= budget {
                     hi = mid;
                     groups = g;
@@ -477,19 +479,19 @@ impl PointCloudMap {
     /// merged, not to the map size.
     fn merge(&mut self, groups: &VoxelGroups) {
         let dim = self.dim;
-        let multi: Vec<&[(u64, u32)]> = groups.runs().filter(|run| run.len() > 1).collect();
+        let multi: Vec<&[u32]> = groups.runs().filter(|run| run.len() > 1).collect();
         let merged_points: Vec<(usize, [f32; 3], [u8; 3])> = multi
             .par_iter()
             .map(|run| {
                 let (mut p, mut c) = ([0.0f64; 3], [0u32; 3]);
-                for &(_, i) in run.iter() {
+                for &i in run.iter() {
                     for k in 0..3 {
                         p[k] += f64::from(self.positions[i as usize][k]);
                         c[k] += u32::from(self.colours[i as usize][k]);
                     }
                 }
                 let n = run.len();
-                let target = run.iter().map(|&(_, i)| i as usize).min().unwrap_or(0);
+                let target = run.iter().map(|&i| i as usize).min().unwrap_or(0);
                 (
                     target,
                     p.map(|x| (x / n as f64) as f32),
@@ -505,13 +507,13 @@ impl PointCloudMap {
                 .for_each_init(
                     || vec![0.0f32; dim],
                     |member, (row, run)| {
-                        for &(_, i) in run.iter() {
+                        for &i in run.iter() {
                             self.embeddings.row_into(i as usize, member);
                             row.iter_mut().zip(member.iter()).for_each(|(a, b)| *a += b);
                         }
                         // Members that cancel out: keep the first one's embedding.
                         if !normalise(row) {
-                            self.embeddings.row_into(run[0].1 as usize, row);
+                            self.embeddings.row_into(run[0] as usize, row);
                         }
                     },
                 );
@@ -527,7 +529,7 @@ impl PointCloudMap {
             dead.extend(
                 multi[g]
                     .iter()
-                    .map(|&(_, i)| i as usize)
+                    .map(|&i| i as usize)
                     .filter(|&i| i != target),
             );
         }
@@ -541,61 +543,6 @@ impl PointCloudMap {
             }
         }
     }
-}
-
-/// Points sorted by voxel key, and the number of occupied voxels.
-struct VoxelGroups {
-    keyed: Vec<(u64, u32)>,
-    count: usize,
-}
-
-impl VoxelGroups {
-    fn new(positions: &[[f32; 3]], voxel: f32, origin: [f32; 3]) -> Self {
-        let mut keyed: Vec<(u64, u32)> = positions
-            .par_iter()
-            .enumerate()
-            .map(|(i, p)| (voxel_key(p, voxel, origin), i as u32))
-            .collect();
-        keyed.par_sort_unstable();
-        let count = if keyed.is_empty() {
-            0
-        } else {
-            1 + keyed.windows(2).filter(|w| w[0].0 != w[1].0).count()
-        };
-        Self { keyed, count }
-    }
-
-    /// The runs of points that share a voxel.
-    fn runs(&self) -> impl Iterator<Item = &[(u64, u32)]> {
-        self.keyed.chunk_by(|a, b| a.0 == b.0)
-    }
-}
-
-/// Voxels per axis that [`voxel_key`] tells apart.
-const KEY_AXIS_VOXELS: f32 = ((1u32 << 21) - 1) as f32;
-
-/// The corner (per-axis minimum) and the largest side of the bounding box of `positions`.
-fn bounding_box(positions: &[[f32; 3]]) -> ([f32; 3], f32) {
-    let (mut lo, mut hi) = ([f32::INFINITY; 3], [f32::NEG_INFINITY; 3]);
-    for p in positions {
-        for k in 0..3 {
-            lo[k] = lo[k].min(p[k]);
-            hi[k] = hi[k].max(p[k]);
-        }
-    }
-    if positions.is_empty() {
-        return ([0.0; 3], 0.0);
-    }
-    let extent = (0..3).map(|k| hi[k] - lo[k]).fold(0.0f32, f32::max);
-    (lo, extent)
-}
-
-/// Packs the voxel coordinates of `p` relative to `origin` (21 bits per axis, about 2 km at 1 mm
-/// voxels; [`PointCloudMap::enforce_budget`] picks voxels that keep the map within that range).
-fn voxel_key(p: &[f32; 3], voxel: f32, origin: [f32; 3]) -> u64 {
-    const MASK: i64 = (1 << 21) - 1;
-    let axis = |k: usize| (((p[k] - origin[k]) / voxel).floor() as i64).clamp(0, MASK) as u64;
-    (axis(0) << 42) | (axis(1) << 21) | axis(2)
 }
 
 impl EmbeddingMap for PointCloudMap {
