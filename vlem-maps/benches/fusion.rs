@@ -8,7 +8,8 @@
 //! embeddings. It prints a table of medians; BENCHMARKS.md records the numbers.
 //!
 //! One case at a time, e.g. for a profile: `VLEM_BENCH_DIMS=11 VLEM_BENCH_POINTS=1000000
-//! VLEM_BENCH_ASSOCIATION=projective VLEM_BENCH_NO_QUERY=1` (each list comma-separated).
+//! VLEM_BENCH_ASSOCIATION=projective VLEM_BENCH_NO_QUERY=1` (each list comma-separated);
+//! `VLEM_BENCH_PRECISION=f16` stores the map's embeddings as f16.
 #![allow(
     clippy::unwrap_used,
     clippy::expect_used,
@@ -25,6 +26,7 @@ use rayon::prelude::*;
 use vlem_core::config::DatasetConfig;
 use vlem_core::{EmbeddingMap, MapMetadata, MapSnapshot, Observation, PixelEmbeddings};
 use vlem_maps::point_cloud::{Association, NAME, PointCloudConfig};
+use vlem_maps::storage::Precision;
 
 /// The dimension of the text query's embeddings (CLIP ViT-B/16).
 const DIM: usize = 512;
@@ -37,8 +39,12 @@ fn main() {
     let frame1 = source.frame(1).unwrap();
     let mut rng = StdRng::seed_from_u64(7);
     let surface = surface_points(&frame0);
+    let precision = match std::env::var("VLEM_BENCH_PRECISION").as_deref() {
+        Ok("f16") => Precision::F16,
+        _ => Precision::F32,
+    };
     println!(
-        "threads: {}; frame 1 has {} valid depth pixels; frame 0 surface {} points",
+        "threads: {}; embeddings stored as {precision:?}; frame 1 has {} valid depth pixels; frame 0 surface {} points",
         rayon::current_num_threads(),
         frame1.depth.valid_count(),
         surface.len()
@@ -64,6 +70,7 @@ fn main() {
                     let config = PointCloudConfig {
                         max_points: budget,
                         association,
+                        precision,
                         ..PointCloudConfig::default()
                     };
                     let mut times = Vec::new();

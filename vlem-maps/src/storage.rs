@@ -157,27 +157,51 @@ impl EmbeddingStore {
         I: Fn() -> S + Sync + Send,
         F: Fn(&mut S, usize, &mut [f32]) -> bool + Sync,
     {
+        // A vector of `()` allocates nothing.
+        let mut nothing = vec![(); self.rows().saturating_sub(first)];
+        self.par_update_rows_zip(first, &mut nothing, init, |state, i, row, ()| {
+            update(state, i, row)
+        });
+    }
+
+    /// Like [`EmbeddingStore::par_update_rows_with`], with each row's item of `beside` (one per row
+    /// from `first` on) passed along: a table kept beside the embeddings, such as a map's colours,
+    /// updated in the same pass.
+    pub fn par_update_rows_zip<T, S, I, F>(
+        &mut self,
+        first: usize,
+        beside: &mut [T],
+        init: I,
+        update: F,
+    ) where
+        T: Send,
+        I: Fn() -> S + Sync + Send,
+        F: Fn(&mut S, usize, &mut [f32], &mut T) -> bool + Sync,
+    {
         let d = self.dim;
         if d == 0 {
             return;
         }
+        debug_assert_eq!(beside.len(), self.rows().saturating_sub(first));
         match &mut self.values {
             Values::F32(v) => v[first * d..]
                 .par_chunks_exact_mut(d)
+                .zip(beside.par_iter_mut())
                 .enumerate()
                 .with_min_len(256)
-                .for_each_init(init, |state, (i, row)| {
-                    update(state, first + i, row);
+                .for_each_init(init, |state, (i, (row, item))| {
+                    update(state, first + i, row, item);
                 }),
             Values::F16(v) => v[first * d..]
                 .par_chunks_exact_mut(d)
+                .zip(beside.par_iter_mut())
                 .enumerate()
                 .with_min_len(256)
                 .for_each_init(
                     || (init(), vec![0.0f32; d]),
-                    |(state, scratch), (i, row)| {
+                    |(state, scratch), (i, (row, item))| {
                         row.convert_to_f32_slice(scratch);
-                        if update(state, first + i, scratch) {
+                        if update(state, first + i, scratch, item) {
                             row.convert_from_f32_slice(scratch);
                         }
                     },

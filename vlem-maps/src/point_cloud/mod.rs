@@ -40,7 +40,8 @@ use crate::storage::{EmbeddingStore, fuse_into};
 /// The registered name.
 pub const NAME: &str = "point-cloud";
 
-/// The largest [`PointCloudConfig::window`]: beyond it a window costs more than the k-d tree.
+/// The largest [`PointCloudConfig::window`], which bounds the cells one map point may visit
+/// (65 × 65); a wider search is what `association = "kd-tree"` is for.
 const MAX_WINDOW: u32 = 32;
 
 crate::map_config! {
@@ -135,15 +136,6 @@ struct Scratch {
     chosen: Vec<bool>,
 }
 
-/// `x.round() as u8` for `x` in `[0, 255]`, without the libm call `round` is on x86-64's baseline
-/// (a quarter of the colour fusion's time): the fractional part `x - trunc(x)` is exact, and
-/// halves round up, as `round` does for non-negative values.
-#[inline]
-fn round_colour(x: f32) -> u8 {
-    let whole = x as u8;
-    whole.saturating_add(u8::from(x - f32::from(whole) >= 0.5))
-}
-
 impl Scratch {
     /// The heap bytes the kept buffers hold (they are part of the map's memory between frames).
     fn memory_bytes(&self) -> usize {
@@ -160,6 +152,15 @@ impl std::fmt::Debug for Scratch {
     fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
         f.write_str("Scratch { .. }")
     }
+}
+
+/// `x.round() as u8` for `x` in `[0, 255]`, without the libm call `round` is on x86-64's baseline
+/// (a quarter of the colour fusion's time): the fractional part `x - trunc(x)` is exact, and
+/// halves round up, as `round` does for non-negative values.
+#[inline]
+fn round_colour(x: f32) -> u8 {
+    let whole = x as u8;
+    whole.saturating_add(u8::from(x - f32::from(whole) >= 0.5))
 }
 
 impl PointCloudMap {
@@ -309,26 +310,29 @@ impl PointCloudMap {
                 c[k] = round_colour((1.0 - w) * f32::from(p[k]) + w * f32::from(c[k]));
             }
         };
-        // Colours first (always), embeddings next: the two tables are updated in separate passes.
-        self.colours
-            .par_iter_mut()
-            .zip(matches.par_iter())
-            .with_min_len(1024)
-            .filter(|(_, m)| **m != NONE)
-            .for_each(|(c, &m)| fuse_colour(c, new.pixels[m as usize]));
         let Some(embeddings) = obs.embeddings.filter(|_| self.dim > 0) else {
+            self.colours
+                .par_iter_mut()
+                .zip(matches.par_iter())
+                .with_min_len(1024)
+                .filter(|(_, m)| **m != NONE)
+                .for_each(|(c, &m)| fuse_colour(c, new.pixels[m as usize]));
             return;
         };
+        // Colours and embeddings in one pass over the matches.
         let dim = self.dim;
-        self.embeddings.par_update_rows_with(
+        self.embeddings.par_update_rows_zip(
             0,
+            &mut self.colours,
             || vec![0.0f32; dim],
-            |scratch, i, e_map| {
+            |scratch, i, e_map, c| {
                 let m = matches[i];
                 if m == NONE {
                     return false;
                 }
-                match embedding(embeddings, new.pixels[m as usize], &mut scratch[..]) {
+                let pixel = new.pixels[m as usize];
+                fuse_colour(c, pixel);
+                match embedding(embeddings, pixel, &mut scratch[..]) {
                     Some(e_new) => {
                         fuse_into(e_map, e_new, w);
                         true

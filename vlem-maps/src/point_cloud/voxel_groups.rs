@@ -162,7 +162,7 @@ mod tests {
                 .map(|i| {
                     let k = rng.random_range(0..distinct);
                     // Spread over the bits in use.
-                    let key = (k * 0x9E37_79B9_7F4A_7C15) & ((1u128 << bits) - 1) as u64;
+                    let key = k.wrapping_mul(0x9E37_79B9_7F4A_7C15) & ((1u128 << bits) - 1) as u64;
                     (key << low) | (i & ((1u64 << low) - 1))
                 })
                 .collect();
