@@ -9,7 +9,10 @@
 //!
 //! One case at a time, e.g. for a profile: `VLEM_BENCH_DIMS=11 VLEM_BENCH_POINTS=1000000
 //! VLEM_BENCH_ASSOCIATION=projective VLEM_BENCH_NO_QUERY=1` (each list comma-separated);
-//! `VLEM_BENCH_PRECISION=f16` stores the map's embeddings as f16.
+//! `VLEM_BENCH_PRECISION=f16` stores the map's embeddings as f16; `VLEM_BENCH_BUDGETS=none` (or
+//! `map-size`) runs one of the two budgets. The scaling rows of BENCHMARKS.md:
+//! `VLEM_BENCH_POINTS=100000,1000000,4000000 VLEM_BENCH_DIMS=11 VLEM_BENCH_ASSOCIATION=projective
+//! VLEM_BENCH_BUDGETS=none`, with and without `VLEM_BENCH_PRECISION=f16`.
 #![allow(
     clippy::unwrap_used,
     clippy::expect_used,
@@ -50,9 +53,14 @@ fn main() {
         surface.len()
     );
     println!(
-        "| dim | map points | association | budget | median ms | min ms | fused | inserted | removed | floor ms | median / floor |"
+        "| dim | map points | association | budget | median ms | min ms | fused | inserted | removed | floor ms | median / floor | query ms |"
     );
-    println!("|---:|---:|---|---|---:|---:|---:|---:|---:|---:|---:|");
+    println!("|---:|---:|---|---|---:|---:|---:|---:|---:|---:|---:|---:|");
+    let budgets: Vec<(&str, usize)> = match std::env::var("VLEM_BENCH_BUDGETS").as_deref() {
+        Ok("none") => vec![("no downsampling", 4)],
+        Ok("map-size") => vec![("at budget N = map size", 1)],
+        _ => vec![("no downsampling", 4), ("at budget N = map size", 1)],
+    };
     // 11-d: the colour-names encoder; 512-d: CLIP ViT-B/16.
     for dim in env_list("VLEM_BENCH_DIMS", &[11, DIM]) {
         let embeddings =
@@ -66,16 +74,17 @@ fn main() {
                 _ => vec![Association::Projective, Association::KdTree],
             };
             for association in associations {
-                for (label, budget) in [("no downsampling", 4 * n), ("at budget N = map size", n)] {
+                for &(label, budget_factor) in &budgets {
                     let config = PointCloudConfig {
-                        max_points: budget,
+                        max_points: budget_factor * n,
                         association,
                         precision,
                         ..PointCloudConfig::default()
                     };
                     let mut times = Vec::new();
                     let mut stats = None;
-                    for _ in 0..RUNS {
+                    let mut query_ms = 0.0;
+                    for run in 0..RUNS {
                         let mut map = config.build(Some(dim)).unwrap();
                         map.restore(snapshot.clone()).unwrap();
                         // A map being built grows its tables by doubling, so a frame rarely
@@ -91,12 +100,20 @@ fn main() {
                             .unwrap();
                         times.push(t.elapsed().as_secs_f64() * 1e3);
                         stats = Some(s);
+                        if run == RUNS - 1 {
+                            // One text query over the integrated map, as a user asks it.
+                            let text = random_unit_rows(&mut rng, 1, dim);
+                            let mut scores = Vec::new();
+                            let t = Instant::now();
+                            map.similarity(&text, &mut scores).unwrap();
+                            query_ms = t.elapsed().as_secs_f64() * 1e3;
+                        }
                     }
                     let s = stats.unwrap();
                     times.sort_by(f64::total_cmp);
                     let floor = *floor.get_or_insert_with(|| memory_floor_ms(s.fused * dim));
                     println!(
-                        "| {dim} | {n} | {association:?} | {label} | {:.1} | {:.1} | {} | {} | {} | {floor:.1} | {:.2} |",
+                        "| {dim} | {n} | {association:?} | {label} | {:.1} | {:.1} | {} | {} | {} | {floor:.1} | {:.2} | {query_ms:.1} |",
                         times[RUNS / 2],
                         times[0],
                         s.fused,

@@ -115,11 +115,14 @@ impl EmbeddingStore {
     }
 
     /// Appends `rows` zero rows (to be filled with [`EmbeddingStore::par_update_rows_from`]).
+    ///
+    /// The zeros are written in parallel: a frame's new rows are hundreds of megabytes at
+    /// 512 dimensions early in a run, and their first write is where their pages are faulted in.
     pub fn grow(&mut self, rows: usize) {
-        let n = self.value_count() + rows * self.dim;
+        let n = rows * self.dim;
         match &mut self.values {
-            Values::F32(v) => v.resize(n, 0.0),
-            Values::F16(v) => v.resize(n, f16::ZERO),
+            Values::F32(v) => v.par_extend(rayon::iter::repeat_n(0.0, n)),
+            Values::F16(v) => v.par_extend(rayon::iter::repeat_n(f16::ZERO, n)),
         }
     }
 
