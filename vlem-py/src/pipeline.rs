@@ -260,6 +260,11 @@ fn run_interruptible(
                 interrupt = Some(e);
             }
         }
+        // A signal that arrived after the last look, while the run was finishing, is the
+        // caller's too: without this look it would surface only at some later Python line.
+        if interrupt.is_none() {
+            interrupt = py.check_signals().err();
+        }
         let outcome = worker
             .join()
             .map_err(|_| PyRuntimeError::new_err("the pipeline's run thread panicked"))?;
