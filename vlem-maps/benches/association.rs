@@ -15,27 +15,15 @@
     reason = "bench binary"
 )]
 
-use std::path::Path;
+mod common;
+
 use std::time::Instant;
 
-use vlem_core::config::DatasetConfig;
 use vlem_core::{EmbeddingMap, Observation};
 use vlem_maps::point_cloud::{Association, PointCloudConfig};
 
 fn main() {
-    let root = Path::new(env!("CARGO_MANIFEST_DIR"));
-    let shared = root.join("../../shared/data/icl-livingroom1");
-    let data = if shared.is_dir() {
-        shared
-    } else {
-        root.join("../data/living-room")
-    };
-    let mut source = vlem_datasets::open(&DatasetConfig::default(), &data).unwrap();
-    let frames = std::env::var("VLEM_BENCH_FRAMES")
-        .ok()
-        .and_then(|n| n.parse().ok())
-        .unwrap_or(source.len())
-        .min(source.len());
+    let (data, mut source, frames) = common::sequence();
     let association = match std::env::var("VLEM_BENCH_ASSOCIATION").as_deref() {
         Ok("kd-tree") => Association::KdTree,
         _ => Association::Projective,

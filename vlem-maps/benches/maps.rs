@@ -15,12 +15,12 @@
     reason = "bench binary"
 )]
 
-use std::path::Path;
+mod common;
+
 use std::time::Instant;
 
 use rand::rngs::StdRng;
 use rand::{Rng, SeedableRng};
-use vlem_core::config::DatasetConfig;
 use vlem_core::{BuildContext, Observation, PixelEmbeddings, Registry, StageConfig};
 
 const DIM: usize = 512;
@@ -32,19 +32,7 @@ fn main() {
         vlem_maps::voxel::NAME,
         vlem_maps::segment::NAME,
     );
-    let root = Path::new(env!("CARGO_MANIFEST_DIR"));
-    let shared = root.join("../../shared/data/icl-livingroom1");
-    let data = if shared.is_dir() {
-        shared
-    } else {
-        root.join("../data/living-room")
-    };
-    let mut source = vlem_datasets::open(&DatasetConfig::default(), &data).unwrap();
-    let frames = std::env::var("VLEM_BENCH_FRAMES")
-        .ok()
-        .and_then(|n| n.parse().ok())
-        .unwrap_or(source.len())
-        .min(source.len());
+    let (data, mut source, frames) = common::sequence();
     let frames: Vec<_> = (0..frames).map(|i| source.frame(i).unwrap()).collect();
     let (w, h) = (frames[0].colour.width(), frames[0].colour.height());
     let embeddings = block_embeddings(w, h);
