@@ -256,8 +256,10 @@ fn saves_survive_sigkill_at_random_moments() {
          left in all",
         leftovers.len()
     );
+    // Any kill after a reported save: the file as it stands at the end can be absent even so,
+    // since every eighth run starts from no file and the last few may all be killed early.
     assert!(
-        on_disk.is_some(),
+        killed_after[1..].iter().sum::<usize>() > 0,
         "no save ever completed: the kill window is too short"
     );
     assert!(mid_save > 0, "no kill landed in the middle of a save");
