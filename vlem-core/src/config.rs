@@ -136,6 +136,8 @@ pub enum DatasetKind {
     Replica,
     /// A procedural labelled scene rendered on demand (no folder); see `[dataset.synthetic]`.
     Synthetic,
+    /// A ROS 2 bag (rosbag2 folder, or one `.mcap` / `.db3` file); topics in `[dataset.rosbag2]`.
+    Rosbag2,
 }
 
 /// `[dataset]`: where frames come from.
@@ -167,6 +169,89 @@ pub struct DatasetConfig {
     /// default of [`SyntheticConfig`].
     #[serde(default, skip_serializing_if = "Option::is_none")]
     pub synthetic: Option<SyntheticConfig>,
+    /// `[dataset.rosbag2]`: the topics of `kind = "rosbag2"`; `None` means every default of
+    /// [`Rosbag2Config`].
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub rosbag2: Option<Rosbag2Config>,
+}
+
+/// `[dataset.rosbag2]`: which topics of a ROS 2 bag make the frames, and where poses come from.
+///
+/// Plain data; `vlem-datasets` checks it against the bag (a missing or mistyped topic lists the
+/// bag's topics). The topic defaults are those of the RealSense ROS 2 wrapper with depth aligned
+/// to colour; append `/compressed` (or `/compressedDepth`) for image_transport's compressed
+/// topics, whose type (`sensor_msgs/msg/CompressedImage`) the reader recognises from the bag.
+///
+/// ```toml
+/// [dataset]
+/// kind = "rosbag2"
+/// path = "my_bag"            # the rosbag2 folder (metadata.yaml + .mcap/.db3), or one file
+///
+/// [dataset.rosbag2]
+/// colour_topic = "/camera/color/image_raw"
+/// depth_topic = "/camera/aligned_depth_to_color/image_raw"
+/// camera_info_topic = "/camera/color/camera_info"
+/// tf = ["map", "camera_color_optical_frame"]   # or pose_topic = "/odom"; or neither
+/// ```
+#[derive(Clone, Debug, Deserialize, Serialize, PartialEq)]
+#[serde(deny_unknown_fields)]
+pub struct Rosbag2Config {
+    /// Colour images: `sensor_msgs/msg/Image` (`rgb8`, `bgr8`, `rgba8`, `bgra8`) or
+    /// `sensor_msgs/msg/CompressedImage` (JPEG, PNG).
+    #[serde(default = "default_rosbag2_colour_topic")]
+    pub colour_topic: String,
+    /// Depth images registered to colour: `sensor_msgs/msg/Image` (`16UC1` in raw units, see
+    /// `[dataset] depth_scale`, default 1000 = millimetres; `32FC1` in metres) or
+    /// `sensor_msgs/msg/CompressedImage` (16-bit PNG, or image_transport's `compressedDepth`).
+    #[serde(default = "default_rosbag2_depth_topic")]
+    pub depth_topic: String,
+    /// `sensor_msgs/msg/CameraInfo` of the colour camera (its K); `[dataset] intrinsics` (an
+    /// Open3D JSON file) replaces it when set.
+    #[serde(default = "default_rosbag2_camera_info_topic")]
+    pub camera_info_topic: String,
+    /// Poses of the camera's optical frame from a `nav_msgs/msg/Odometry` or
+    /// `geometry_msgs/msg/PoseStamped` topic. Leave it and `tf` out for a bag without poses
+    /// (track with `odometry` or `frame-to-model`).
+    #[serde(default)]
+    pub pose_topic: Option<String>,
+    /// Poses from `/tf` and `/tf_static`: `[parent, child]` frame ids, e.g.
+    /// `["map", "camera_color_optical_frame"]`; the parent must be an ancestor of the child in the
+    /// tf tree.
+    #[serde(default)]
+    pub tf: Option<[String; 2]>,
+    /// Largest difference in seconds between the stamps of a colour and a depth image paired into
+    /// one frame, and between a frame and the pose it takes without interpolation; default 0.02.
+    #[serde(default = "default_rosbag2_max_time_difference")]
+    pub max_time_difference: f64,
+}
+
+fn default_rosbag2_colour_topic() -> String {
+    "/camera/color/image_raw".to_owned()
+}
+
+fn default_rosbag2_depth_topic() -> String {
+    "/camera/aligned_depth_to_color/image_raw".to_owned()
+}
+
+fn default_rosbag2_camera_info_topic() -> String {
+    "/camera/color/camera_info".to_owned()
+}
+
+fn default_rosbag2_max_time_difference() -> f64 {
+    0.02
+}
+
+impl Default for Rosbag2Config {
+    fn default() -> Self {
+        Self {
+            colour_topic: default_rosbag2_colour_topic(),
+            depth_topic: default_rosbag2_depth_topic(),
+            camera_info_topic: default_rosbag2_camera_info_topic(),
+            pose_topic: None,
+            tf: None,
+            max_time_difference: default_rosbag2_max_time_difference(),
+        }
+    }
 }
 
 /// Depth noise of the synthetic scene.

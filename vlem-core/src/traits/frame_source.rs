@@ -33,6 +33,13 @@ pub trait FrameSource: Send {
     /// A typed error naming the file that is missing, unreadable or inconsistent.
     fn frame(&mut self, index: usize) -> Result<Frame>;
 
+    /// What the reader noticed when it opened the source and a user should know before a run
+    /// (frames it dropped and why, calibration it cannot apply, a frame convention it could not
+    /// check); front-ends print each as a warning. Empty by default.
+    fn warnings(&self) -> Vec<String> {
+        Vec::new()
+    }
+
     /// Whether frames arrive from outside at their own rate (a camera, a robot's topics) rather
     /// than being read on demand: the pipeline then reads with [`FrameSource::next_frame`] until
     /// it answers `None`, and does not pace the source in real-time mode.
