@@ -162,6 +162,9 @@ fn run(mut config: Config, ctx: BuildContext, out: &Path, options: &RunOptions<'
         pipeline.encoder().map_or("(none)", |e| e.name()),
         pipeline.map().map_or("(none)", |m| m.name()),
     );
+    for warning in source.warnings() {
+        eprintln!("warning: {warning}");
+    }
     if let Some(server) = &server {
         eprintln!(
             "vlem: serving the live map on http://{} (GET /status, POST /query, GET /heatmap.ply, \

@@ -225,6 +225,14 @@ pub enum DatasetError {
         #[source]
         source: image::ImageError,
     },
+    /// A ROS 2 bag that cannot be read as configured: its storage, a topic, or a message.
+    #[error("{}: {message}", path.display())]
+    Bag {
+        /// The bag (folder or storage file).
+        path: PathBuf,
+        /// What is wrong, naming the topic and message where there is one.
+        message: String,
+    },
     /// A core validation (intrinsics, frame) that failed on data read from a file.
     #[error("{}: {source}", path.display())]
     Core {

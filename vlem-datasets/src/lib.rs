@@ -5,6 +5,7 @@
 //! - [`tum`]: TUM RGB-D, colour associated to depth within 0.02 s, depth scale 5000;
 //! - [`scannet`]: ScanNet exports, colour resampled to the depth camera, depth scale 1000;
 //! - [`replica`]: Replica as packaged by NICE-SLAM, depth scale 6553.5;
+//! - [`rosbag2`] (feature `rosbag2`): a ROS 2 bag, MCAP or SQLite3, topics in `[dataset.rosbag2]`;
 //! - [`synthetic`]: no folder: a procedural labelled scene rendered on demand
 //!   (`kind = "synthetic"`, settings in `[dataset.synthetic]`), which can also be written out in the
 //!   ICL layout with [`synthetic::write_to_disk`].
@@ -29,6 +30,8 @@ mod error;
 pub mod icl;
 mod images;
 pub mod replica;
+#[cfg(feature = "rosbag2")]
+pub mod rosbag2;
 pub mod scannet;
 mod sequence;
 pub mod synthetic;
@@ -44,14 +47,16 @@ pub use error::{DatasetError, Result};
 pub use icl::IclReader;
 pub use images::{colour_from_bytes, colour_resized_from_bytes, depth_from_bytes};
 pub use replica::ReplicaReader;
+#[cfg(feature = "rosbag2")]
+pub use rosbag2::Rosbag2Reader;
 pub use scannet::ScanNetReader;
 pub use synthetic::{SyntheticReader, SyntheticScene};
 pub use text::{MatchPair, match_pairs_from_str};
 pub use tum::TumReader;
 
 /// What [`detect_kind`] looks for, in the order it checks.
-const LAYOUTS_LOOKED_FOR: &str = "looked for rgb.txt and depth.txt (TUM RGB-D), results/ \
-    (Replica, NICE-SLAM), intrinsic/ or pose/ beside depth/ (ScanNet export), and color/ or \
+const LAYOUTS_LOOKED_FOR: &str = "looked for metadata.yaml or .mcap/.db3 files (ROS 2 bag), \
+    rgb.txt and depth.txt (TUM RGB-D), results/ (Replica, NICE-SLAM), intrinsic/ or pose/ beside depth/ (ScanNet export), and color/ or \
     image/ beside depth/, or rgbd.match (ICL-NUIM/Redwood); set [dataset] kind to skip detection";
 
 /// Detects the layout of the dataset folder `dir` from the files it holds.
@@ -61,6 +66,9 @@ const LAYOUTS_LOOKED_FOR: &str = "looked for rgb.txt and depth.txt (TUM RGB-D), 
 /// nothing, and [`DatasetError::UnknownLayout`] (listing what was looked for and what was found)
 /// when it matches no layout.
 pub fn detect_kind(dir: &Path) -> Result<DatasetKind> {
+    if looks_like_bag(dir) {
+        return Ok(DatasetKind::Rosbag2);
+    }
     if !dir.is_dir() {
         return Err(DatasetError::MissingFile {
             path: dir.to_path_buf(),
@@ -82,6 +90,21 @@ pub fn detect_kind(dir: &Path) -> Result<DatasetKind> {
         return Err(unknown_layout(dir));
     };
     Ok(kind)
+}
+
+/// Whether `path` looks like a ROS 2 bag: a `.mcap` or `.db3` file, or a folder with
+/// `metadata.yaml` or such a file.
+pub fn looks_like_bag(path: &Path) -> bool {
+    let is_storage = |p: &Path| p.extension().is_some_and(|e| e == "mcap" || e == "db3");
+    if path.is_file() {
+        return is_storage(path);
+    }
+    path.join("metadata.yaml").is_file()
+        || std::fs::read_dir(path)
+            .into_iter()
+            .flatten()
+            .flatten()
+            .any(|e| is_storage(&e.path()))
 }
 
 /// [`DatasetError::Empty`] for an empty folder, else [`DatasetError::UnknownLayout`] naming what
@@ -134,7 +157,9 @@ pub fn dataset_folder(
         (None, None) if synthetic => ctx.config_dir.clone(),
         (None, None) => return Err(DatasetError::NoFolder),
     };
-    if !synthetic && !dir.is_dir() {
+    // A bag may be one storage file rather than a folder.
+    let bag_file = dir.is_file() && looks_like_bag(&dir);
+    if !synthetic && !dir.is_dir() && !bag_file {
         return Err(DatasetError::NoSuchFolder { path: dir });
     }
     Ok(dir)
@@ -153,6 +178,15 @@ pub fn open(config: &DatasetConfig, dir: &Path) -> Result<Box<dyn FrameSource>> 
     if config.kind == DatasetKind::Synthetic {
         return Ok(Box::new(SyntheticReader::open(config)?));
     }
+    if config.rosbag2.is_some() && !matches!(config.kind, DatasetKind::Rosbag2 | DatasetKind::Auto)
+    {
+        return Err(DatasetError::BadConfig {
+            path: dir.to_path_buf(),
+            message: "rosbag2 is set but kind is not \"rosbag2\"; set kind = \"rosbag2\" or \
+                      remove [dataset.rosbag2]"
+                .to_owned(),
+        });
+    }
     if config.synthetic.is_some() {
         return Err(DatasetError::BadConfig {
             path: dir.to_path_buf(),
@@ -170,7 +204,25 @@ pub fn open(config: &DatasetConfig, dir: &Path) -> Result<Box<dyn FrameSource>> 
         DatasetKind::Scannet => Box::new(ScanNetReader::open(dir, config)?),
         DatasetKind::Replica => Box::new(ReplicaReader::open(dir, config)?),
         DatasetKind::Synthetic => Box::new(SyntheticReader::open(config)?),
+        DatasetKind::Rosbag2 => open_bag(config, dir)?,
         // `detect_kind` never returns `Auto`, so this arm is ICL only.
         DatasetKind::Icl | DatasetKind::Auto => Box::new(IclReader::open(dir, config)?),
+    })
+}
+
+/// The reader of a ROS 2 bag, where the `rosbag2` feature is built.
+#[cfg(feature = "rosbag2")]
+fn open_bag(config: &DatasetConfig, path: &Path) -> Result<Box<dyn FrameSource>> {
+    Ok(Box::new(Rosbag2Reader::open(path, config)?))
+}
+
+/// Without the `rosbag2` feature: an error that says how to build it.
+#[cfg(not(feature = "rosbag2"))]
+fn open_bag(_config: &DatasetConfig, path: &Path) -> Result<Box<dyn FrameSource>> {
+    Err(DatasetError::BadConfig {
+        path: path.to_path_buf(),
+        message: "kind = \"rosbag2\" (a ROS 2 bag) needs vlem built with the `rosbag2` feature: \
+                  cargo build --release --features rosbag2"
+            .to_owned(),
     })
 }

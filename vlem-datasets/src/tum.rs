@@ -207,7 +207,7 @@ fn attach_groundtruth(selected: &mut [(usize, Entry)], path: &Path) -> Result<()
 
 /// The pose at `time` from a time-sorted trajectory: the nearest one within `tolerance`, else the
 /// interpolation (linear translation, slerp rotation) of the poses on both sides, else `None`.
-fn pose_at(poses: &[(f64, Pose)], time: f64, tolerance: f64) -> Option<Pose> {
+pub(crate) fn pose_at(poses: &[(f64, Pose)], time: f64, tolerance: f64) -> Option<Pose> {
     let split = poses.partition_point(|(t, _)| *t < time);
     let before = split.checked_sub(1).map(|i| &poses[i]);
     let after = poses.get(split);

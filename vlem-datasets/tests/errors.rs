@@ -302,3 +302,40 @@ fn a_depth_image_of_another_size_is_refused_from_its_header_before_decoding() {
         "{err}"
     );
 }
+
+/// A bag is recognised in every build; without the `rosbag2` feature opening it says how to build
+/// the reader, and `[dataset.rosbag2]` with another kind is a mistake, not ignored.
+#[test]
+fn bags_are_detected_and_a_build_without_the_reader_says_so() {
+    let bag = std::path::Path::new(env!("CARGO_MANIFEST_DIR")).join("tests/data/rosbag2/raw-mcap");
+    assert_eq!(detect_kind(&bag).unwrap(), DatasetKind::Rosbag2);
+    let config = DatasetConfig {
+        kind: DatasetKind::Rosbag2,
+        ..DatasetConfig::default()
+    };
+    let opened = vlem_datasets::open(&config, &bag);
+    if cfg!(feature = "rosbag2") {
+        // The default topics are not in this bag: the error lists the ones that are.
+        let err = opened.err().unwrap().to_string();
+        assert!(
+            err.contains("/raw/rgb8 (sensor_msgs/msg/Image, 3 messages)"),
+            "{err}"
+        );
+    } else {
+        let err = opened.err().unwrap().to_string();
+        assert!(
+            err.contains("cargo build --release --features rosbag2"),
+            "{err}"
+        );
+    }
+    let config = DatasetConfig {
+        kind: DatasetKind::Icl,
+        rosbag2: Some(Default::default()),
+        ..DatasetConfig::default()
+    };
+    let err = vlem_datasets::open(&config, &bag)
+        .err()
+        .unwrap()
+        .to_string();
+    assert!(err.contains("kind is not \"rosbag2\""), "{err}");
+}
