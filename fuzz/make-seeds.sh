@@ -16,7 +16,7 @@ done
 
 c=corpus
 rm -rf "$c"
-mkdir -p "$c"/{depth_image,colour_image,open3d_intrinsics,redwood_log,tum_trajectory,association_lists,scannet_text,config_toml,map_file}
+mkdir -p "$c"/{depth_image,colour_image,open3d_intrinsics,redwood_log,tum_trajectory,association_lists,scannet_text,config_toml,map_file,rosbag2_bag,rosbag2_messages}
 
 # Images are cut down by seedgen/ (a small Rust tool on the `image` crate, the decoder vlem uses):
 # `sample:WxH` is nearest-neighbour, so depth values stay real depths.
@@ -145,3 +145,8 @@ printf '[dataset]\nkind = "synthetic"\n[dataset.synthetic]\nwidth = 0\nroom = [n
 printf '[map]\nkind = "point-cloud"\nnested = { a = [[1, 2], [3.5]], b = { c = "d" } }\n' >"$c/config_toml/nested_params.toml"
 
 du -sh "$c"/*
+
+# ROS 2 bags (tiny whole storage files) and messages (CDR payloads), written by the `rosbags`
+# package, an implementation independent of vlem's: set up its virtualenv as
+# vlem-datasets/tests/data/rosbag2/make_bags.py says, or point ROSBAGS_PYTHON at a python with it.
+"${ROSBAGS_PYTHON:-../bench/.venv-rosbags/bin/python}" ../vlem-datasets/tests/data/rosbag2/make_bags.py --fuzz-seeds "$c"
