@@ -30,7 +30,6 @@ mod error;
 pub mod icl;
 mod images;
 pub mod replica;
-#[cfg(feature = "rosbag2")]
 pub mod rosbag2;
 pub mod scannet;
 mod sequence;
