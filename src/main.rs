@@ -50,6 +50,9 @@ enum Command {
     /// One cell of a study, in this process (what `vlem study` runs per cell).
     #[command(hide = true)]
     StudyCell(cli::study::StudyCellArgs),
+    /// The live ROS 2 node (feature `ros2`): subscribes to a camera's colour, depth and camera
+    /// info topics, maps, and publishes the tracked pose, the map and the answers to queries.
+    Ros2(cli::ros2::Ros2Args),
     /// Run the embedded default: the committed living-room frames, pseudo ground-truth poses, the
     /// point-cloud map, the colour-names encoder and two queries.
     Demo(cli::run::DemoArgs),
@@ -65,6 +68,7 @@ fn main() -> std::process::ExitCode {
         Command::Study(args) => cli::study::execute(&args),
         Command::StudyCell(args) => cli::study::execute_cell(&args),
         Command::Demo(args) => cli::run::demo(&args),
+        Command::Ros2(args) => cli::ros2::execute(&args),
     };
     match outcome {
         Ok(()) => std::process::ExitCode::SUCCESS,

@@ -4,6 +4,7 @@
 pub mod eval;
 pub mod plugins;
 pub mod query;
+pub mod ros2;
 pub mod run;
 pub mod soak;
 pub mod study;

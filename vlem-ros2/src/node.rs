@@ -1,0 +1,693 @@
+//! The node: subscribes to the camera topics, runs the pipeline on the live stream, and publishes
+//! the tracked pose, the map and the answers to queries.
+//!
+//! Threads: this one takes messages (never blocking on the pipeline: a frame that finds the
+//! tracker's queue full is dropped and counted), publishes the pose and the map; the pipeline runs
+//! on its own thread over a [`vlem_core::stream`] (real-time mode skips embedding frames while the
+//! encoder is busy, as for a dataset); queries are answered on a third thread through the
+//! [`LiveMap`], so a slow query never stalls the images.
+
+use std::net::Ipv4Addr;
+use std::sync::Arc;
+use std::sync::atomic::{AtomicBool, Ordering};
+use std::sync::mpsc;
+use std::thread::JoinHandle;
+use std::time::{Duration, Instant};
+
+use ros2_client::dds::rustdds::DomainParticipantBuilder;
+use ros2_client::qos::{Durability, History, WhenFull};
+use ros2_client::{
+    Context, MessageTypeName, Name, Node, NodeName, NodeOptions, Publisher, QosProfile,
+    Subscription,
+};
+use serde::Serialize;
+use serde::de::DeserializeOwned;
+use vlem_core::config::{Ros2Config, Ros2PoseType};
+use vlem_core::live::LiveMap;
+use vlem_core::pipeline::{Pipeline, RunReport};
+use vlem_core::stream::{FrameSender, StreamSpec, frame_stream};
+use vlem_core::{CoreError, Segmenter};
+use vlem_query::answer::{AnswerOptions, answer_live};
+use vlem_query::grasp::GraspParams;
+use vlem_query::heatmap::jet;
+
+use crate::error::{Result, Ros2Error};
+use crate::frames::{Assembler, ImageMessage};
+use crate::msgs::{
+    CameraInfo, CompressedImage, Header, Image, Odometry, PointCloud2, PoseMessage, PoseStamped,
+    StringMessage, TfMessage, Time, TransformStamped,
+};
+use crate::status::{Counter, Status, StatusReport};
+
+/// What a node run did.
+pub struct NodeReport {
+    /// The pipeline's run (`None` when no frame ever reached it: no camera info arrived).
+    pub run: Option<RunReport>,
+    /// The node's counters.
+    pub status: StatusReport,
+    /// The pipeline, back from its thread (its live map holds the map).
+    pub pipeline: Pipeline,
+}
+
+/// How long the loop sleeps when no message is waiting.
+const IDLE: Duration = Duration::from_millis(5);
+
+/// Runs the node until `stop` is set, then ends the stream, waits for the pipeline to finish the
+/// frames it has, and returns.
+///
+/// # Errors
+/// [`Ros2Error::Config`] for settings that cannot work (including a `ground-truth` tracker
+/// without a pose topic), [`Ros2Error::Dds`] when the DDS participant or a topic cannot be
+/// created, and the pipeline's error if it stops on one.
+pub fn run_node(
+    pipeline: Pipeline,
+    segmenter: Box<dyn Segmenter>,
+    settings: &Ros2Config,
+    stop: &AtomicBool,
+) -> Result<NodeReport> {
+    validate(settings, &pipeline)?;
+    let live = pipeline.live();
+    let status = Arc::new(Status::default());
+    let ctx = context(settings)?;
+    let mut node = ctx
+        .new_node(
+            NodeName::new("/", &settings.node_name).map_err(dds("node name"))?,
+            NodeOptions::new().enable_rosout(false),
+        )
+        .map_err(dds("node"))?;
+    let io = Io::new(&mut node, settings)?;
+    eprintln!(
+        "vlem ros2: node /{} on domain {} listening to {} + {} ({}), answering {}",
+        settings.node_name,
+        domain_id(settings),
+        settings.colour_topic,
+        settings.depth_topic,
+        settings.camera_info_topic,
+        settings.query_topic
+    );
+
+    let (queries, query_thread) =
+        spawn_query_worker(&mut node, settings, live.clone(), segmenter, status.clone())?;
+    let mut assembler = Assembler::new(
+        settings.max_time_difference,
+        settings.depth_scale as f32,
+        settings.pose_topic.is_some(),
+    );
+    let mut pipeline = Some(pipeline);
+    let mut running: Option<(FrameSender, JoinHandle<RunOutcome>)> = None;
+    let mut published_pose: Option<usize> = None;
+    let mut map_published_at: Option<(Instant, usize)> = None;
+    let mut last_image = Instant::now();
+    let mut images_seen = false;
+    let mut stalled = false;
+
+    while !stop.load(Ordering::Relaxed) {
+        let got_images = io.take_images(&mut assembler, &status);
+        let mut busy = got_images;
+        busy |= io.take_camera_info(&mut assembler, &status);
+        busy |= io.take_poses(&mut assembler, &status);
+        while let Some(text) = io.take_query(&status) {
+            busy = true;
+            if queries.send(text).is_err() {
+                status.warn(Counter::QueryErrors, "the query thread has stopped");
+            }
+        }
+        if got_images {
+            last_image = Instant::now();
+            images_seen = true;
+            stalled = false;
+        }
+        if !stalled && last_image.elapsed().as_secs_f64() > settings.stall_seconds {
+            stalled = true;
+            if images_seen {
+                status.warn(
+                    Counter::Stalls,
+                    &format!(
+                        "no image for {} s: is the camera still publishing?",
+                        settings.stall_seconds
+                    ),
+                );
+            } else {
+                eprintln!(
+                    "vlem ros2: no image on {} or {} yet; check the topic names, the domain \
+                     ({}) and that the camera publishes (`ros2 topic list`, `ros2 topic hz`)",
+                    settings.colour_topic,
+                    settings.depth_topic,
+                    domain_id(settings)
+                );
+            }
+        }
+        // The pipeline starts with the first camera info: its stream is for that camera.
+        if running.is_none()
+            && let Some(camera) = assembler.camera()
+            && let Some(p) = pipeline.take()
+        {
+            running = Some(start_pipeline(p, camera, settings)?);
+        }
+        for frame in assembler.frames(&status) {
+            let Some((sender, _)) = &running else {
+                break;
+            };
+            match sender.try_send(frame) {
+                Ok(Some(_)) => status.count(Counter::FramesQueued),
+                Ok(None) => status.count(Counter::DroppedBusy),
+                Err(CoreError::FrameRefused { reason }) => {
+                    status.warn(Counter::Refused, &format!("frame refused: {reason}"));
+                }
+                Err(_) => {
+                    // The pipeline stopped reading: it ended on an error, reported below.
+                    stop_reading(&status);
+                    break;
+                }
+            }
+        }
+        if running.as_ref().is_some_and(|(_, h)| h.is_finished()) {
+            break;
+        }
+        publish_pose(&io, &live, settings, &mut published_pose);
+        publish_map(&io, &live, settings, &status, &mut map_published_at);
+        if !busy {
+            std::thread::sleep(IDLE);
+        }
+    }
+
+    drop(queries);
+    let _ = query_thread.join();
+    let (run, pipeline) = match running {
+        Some((sender, handle)) => {
+            sender.finish();
+            let outcome = handle
+                .join()
+                .map_err(|_| Ros2Error::Config("the pipeline thread panicked".into()))?;
+            (Some(outcome.report?), outcome.pipeline)
+        }
+        None => match pipeline {
+            Some(p) => (None, p),
+            None => return Err(Ros2Error::Config("the pipeline was lost".into())),
+        },
+    };
+    // One last pose and map, so a late subscriber of a short run sees the final state.
+    publish_pose(&io, &live, settings, &mut published_pose);
+    map_published_at = None;
+    publish_map(&io, &live, settings, &status, &mut map_published_at);
+    Ok(NodeReport {
+        run,
+        status: status.report(),
+        pipeline,
+    })
+}
+
+fn stop_reading(status: &Status) {
+    status.warn(
+        Counter::Refused,
+        "the pipeline stopped reading frames; the node ends",
+    );
+}
+
+struct RunOutcome {
+    pipeline: Pipeline,
+    report: vlem_core::Result<RunReport>,
+}
+
+fn start_pipeline(
+    mut pipeline: Pipeline,
+    camera: vlem_core::Intrinsics,
+    settings: &Ros2Config,
+) -> Result<(FrameSender, JoinHandle<RunOutcome>)> {
+    let spec = StreamSpec {
+        description: format!(
+            "the ROS 2 topics {} + {}",
+            settings.colour_topic, settings.depth_topic
+        ),
+        intrinsics: camera,
+        has_poses: settings.pose_topic.is_some(),
+        capacity: settings.queue,
+    };
+    let (sender, mut stream) = frame_stream(spec)?;
+    let handle = std::thread::Builder::new()
+        .name("vlem-ros2-pipeline".into())
+        .spawn(move || {
+            let report = pipeline.run(&mut stream, None, &|_| {});
+            RunOutcome { pipeline, report }
+        })
+        .map_err(|e| Ros2Error::Config(format!("cannot start the pipeline thread: {e}")))?;
+    eprintln!(
+        "vlem ros2: camera {}x{} (fx {}, fy {}); mapping",
+        camera.width, camera.height, camera.fx, camera.fy
+    );
+    Ok((sender, handle))
+}
+
+fn validate(settings: &Ros2Config, pipeline: &Pipeline) -> Result<()> {
+    let bad = |message: String| Err(Ros2Error::Config(message));
+    let positive = |v: f64| v.is_finite() && v > 0.0;
+    if !positive(settings.max_time_difference) {
+        return bad(format!(
+            "[ros2] max_time_difference must be a positive number of seconds, got {}",
+            settings.max_time_difference
+        ));
+    }
+    if !positive(settings.depth_scale) {
+        return bad(format!(
+            "[ros2] depth_scale must be positive, got {}",
+            settings.depth_scale
+        ));
+    }
+    if !positive(settings.stall_seconds) {
+        return bad(format!(
+            "[ros2] stall_seconds must be positive, got {}",
+            settings.stall_seconds
+        ));
+    }
+    if !(settings.map_rate.is_finite() && settings.map_rate >= 0.0) {
+        return bad(format!(
+            "[ros2] map_rate must be 0 (never) or a rate in Hz, got {}",
+            settings.map_rate
+        ));
+    }
+    if settings.queue == 0 {
+        return bad("[ros2] queue must be at least 1".into());
+    }
+    if pipeline.tracker().needs_dataset_poses() && settings.pose_topic.is_none() {
+        return bad(format!(
+            "the tracker `{}` reads poses from the source, but [ros2] has no pose_topic; set one \
+             or use [tracker] kind = \"odometry\" or \"frame-to-model\"",
+            pipeline.tracker().name()
+        ));
+    }
+    Ok(())
+}
+
+/// `[ros2] domain_id`, else `$ROS_DOMAIN_ID`, else 0.
+fn domain_id(settings: &Ros2Config) -> u16 {
+    settings
+        .domain_id
+        .or_else(|| std::env::var("ROS_DOMAIN_ID").ok()?.trim().parse().ok())
+        .unwrap_or(0)
+}
+
+fn dds<E: std::fmt::Debug>(what: &'static str) -> impl Fn(E) -> Ros2Error {
+    move |e| Ros2Error::Dds(format!("{what}: {e:?}"))
+}
+
+fn context(settings: &Ros2Config) -> Result<Context> {
+    let mut builder = DomainParticipantBuilder::new(domain_id(settings));
+    if settings.localhost_only {
+        builder = builder.with_only_networks([Ipv4Addr::LOCALHOST]);
+    }
+    let participant = builder.build().map_err(dds("DDS participant"))?;
+    Context::from_domain_participant(participant).map_err(dds("ROS 2 context"))
+}
+
+/// rclcpp's `SensorDataQoS`: best effort (so it matches any camera driver's writer), keep last 5.
+fn sensor_qos() -> QosProfile {
+    QosProfile::subscription_default()
+        .reliability_best_effort()
+        .durability(Durability::Volatile)
+        .history(History::KeepLast { depth: 5 })
+}
+
+/// rclcpp's default `QoS(10)`: reliable, volatile, keep last 10.
+fn reliable_qos() -> QosProfile {
+    QosProfile::publisher_default()
+        .reliability_reliable(WhenFull::Wait(Duration::from_millis(100)))
+        .durability(Durability::Volatile)
+        .history(History::KeepLast { depth: 10 })
+}
+
+/// Whether an image topic carries `CompressedImage` (image_transport's topic naming).
+fn is_compressed_topic(topic: &str) -> bool {
+    topic.ends_with("/compressed") || topic.ends_with("/compressedDepth")
+}
+
+fn subscribe<M: DeserializeOwned + 'static>(
+    node: &mut Node,
+    topic: &str,
+    (package, name): (&str, &str),
+    qos: QosProfile,
+) -> Result<Subscription<M>> {
+    let parsed = Name::parse(topic)
+        .map_err(|e| Ros2Error::Config(format!("topic name `{topic}`: {e:?}")))?;
+    let topic_handle = node
+        .create_topic(&parsed, MessageTypeName::new(package, name), &qos)
+        .map_err(dds("topic"))?;
+    node.create_subscription(&topic_handle, Some(qos))
+        .map_err(dds("subscription"))
+}
+
+fn advertise<M: Serialize>(
+    node: &mut Node,
+    topic: &str,
+    (package, name): (&str, &str),
+) -> Result<Publisher<M>> {
+    let qos = reliable_qos();
+    let parsed = Name::parse(topic)
+        .map_err(|e| Ros2Error::Config(format!("topic name `{topic}`: {e:?}")))?;
+    let topic_handle = node
+        .create_topic(&parsed, MessageTypeName::new(package, name), &qos)
+        .map_err(dds("topic"))?;
+    node.create_publisher(&topic_handle, Some(qos))
+        .map_err(dds("publisher"))
+}
+
+const IMAGE: (&str, &str) = ("sensor_msgs", "Image");
+const COMPRESSED_IMAGE: (&str, &str) = ("sensor_msgs", "CompressedImage");
+const POINT_CLOUD2: (&str, &str) = ("sensor_msgs", "PointCloud2");
+const POSE_STAMPED: (&str, &str) = ("geometry_msgs", "PoseStamped");
+
+/// A subscription to raw or compressed images.
+enum ImageSubscription {
+    Raw(Subscription<Image>),
+    Compressed(Subscription<CompressedImage>),
+}
+
+impl ImageSubscription {
+    fn new(node: &mut Node, topic: &str) -> Result<Self> {
+        Ok(if is_compressed_topic(topic) {
+            Self::Compressed(subscribe(node, topic, COMPRESSED_IMAGE, sensor_qos())?)
+        } else {
+            Self::Raw(subscribe(node, topic, IMAGE, sensor_qos())?)
+        })
+    }
+
+    /// The next waiting image, `None` when there is none; a message that fails to deserialise
+    /// is counted and skipped.
+    fn take(&self, status: &Status) -> Option<ImageMessage> {
+        let taken = match self {
+            Self::Raw(s) => s
+                .take()
+                .map(|m| m.map(|(m, _)| ImageMessage::Raw(m)))
+                .map_err(|e| format!("{e:?}")),
+            Self::Compressed(s) => s
+                .take()
+                .map(|m| m.map(|(m, _)| ImageMessage::Compressed(m)))
+                .map_err(|e| format!("{e:?}")),
+        };
+        taken.unwrap_or_else(|e| {
+            status.warn(Counter::BadMessage, &format!("image message: {e}"));
+            None
+        })
+    }
+}
+
+enum PoseSubscription {
+    Odometry(Subscription<Odometry>),
+    PoseStamped(Subscription<PoseStamped>),
+}
+
+/// The node's subscriptions and the publishers of this thread.
+struct Io {
+    colour: ImageSubscription,
+    depth: ImageSubscription,
+    camera_info: Subscription<CameraInfo>,
+    pose: Option<PoseSubscription>,
+    query: Subscription<StringMessage>,
+    pose_out: Publisher<PoseStamped>,
+    tf: Publisher<TfMessage>,
+    map: Publisher<PointCloud2>,
+}
+
+impl Io {
+    fn new(node: &mut Node, settings: &Ros2Config) -> Result<Self> {
+        let pose = match &settings.pose_topic {
+            None => None,
+            Some(topic) => Some(match settings.pose_type {
+                Ros2PoseType::Odometry => PoseSubscription::Odometry(subscribe(
+                    node,
+                    topic,
+                    ("nav_msgs", "Odometry"),
+                    reliable_qos(),
+                )?),
+                Ros2PoseType::PoseStamped => PoseSubscription::PoseStamped(subscribe(
+                    node,
+                    topic,
+                    POSE_STAMPED,
+                    reliable_qos(),
+                )?),
+            }),
+        };
+        Ok(Self {
+            colour: ImageSubscription::new(node, &settings.colour_topic)?,
+            depth: ImageSubscription::new(node, &settings.depth_topic)?,
+            camera_info: subscribe(
+                node,
+                &settings.camera_info_topic,
+                ("sensor_msgs", "CameraInfo"),
+                sensor_qos(),
+            )?,
+            pose,
+            query: subscribe(
+                node,
+                &settings.query_topic,
+                ("std_msgs", "String"),
+                reliable_qos(),
+            )?,
+            pose_out: advertise(node, &settings.pose_out_topic, POSE_STAMPED)?,
+            tf: advertise(node, "/tf", ("tf2_msgs", "TFMessage"))?,
+            map: advertise(node, &settings.map_topic, POINT_CLOUD2)?,
+        })
+    }
+
+    /// Moves every waiting image into the assembler; whether there was one.
+    fn take_images(&self, assembler: &mut Assembler, status: &Status) -> bool {
+        let mut any = false;
+        while let Some(image) = self.colour.take(status) {
+            status.count(Counter::Colour);
+            assembler.colour(image);
+            any = true;
+        }
+        while let Some(image) = self.depth.take(status) {
+            status.count(Counter::Depth);
+            assembler.depth(image);
+            any = true;
+        }
+        any
+    }
+
+    fn take_camera_info(&self, assembler: &mut Assembler, status: &Status) -> bool {
+        let mut any = false;
+        loop {
+            match self.camera_info.take() {
+                Ok(Some((info, _))) => {
+                    assembler.camera_info(&info, status);
+                    any = true;
+                }
+                Ok(None) => return any,
+                Err(e) => {
+                    status.warn(Counter::BadMessage, &format!("camera info: {e:?}"));
+                    return any;
+                }
+            }
+        }
+    }
+
+    fn take_poses(&self, assembler: &mut Assembler, status: &Status) -> bool {
+        let mut any = false;
+        loop {
+            let taken = match &self.pose {
+                None => return false,
+                Some(PoseSubscription::Odometry(s)) => s
+                    .take()
+                    .map(|m| m.map(|(m, _)| (m.header, m.pose.pose)))
+                    .map_err(|e| format!("{e:?}")),
+                Some(PoseSubscription::PoseStamped(s)) => s
+                    .take()
+                    .map(|m| m.map(|(m, _)| (m.header, m.pose)))
+                    .map_err(|e| format!("{e:?}")),
+            };
+            match taken {
+                Ok(Some((header, pose))) => {
+                    any = true;
+                    match pose.to_pose() {
+                        Ok(pose) => assembler.pose(header.stamp.seconds(), pose),
+                        Err(e) => status.warn(Counter::BadMessage, &format!("pose: {e}")),
+                    }
+                }
+                Ok(None) => return any,
+                Err(e) => {
+                    status.warn(Counter::BadMessage, &format!("pose message: {e}"));
+                    return any;
+                }
+            }
+        }
+    }
+
+    fn take_query(&self, status: &Status) -> Option<String> {
+        match self.query.take() {
+            Ok(message) => message.map(|(m, _)| m.data),
+            Err(e) => {
+                status.warn(Counter::BadMessage, &format!("query message: {e:?}"));
+                None
+            }
+        }
+    }
+}
+
+fn header(frame: &str, stamp: Time) -> Header {
+    Header {
+        stamp,
+        frame_id: frame.to_owned(),
+    }
+}
+
+/// Publishes the tracker's latest pose (PoseStamped and tf) when it is new.
+fn publish_pose(io: &Io, live: &LiveMap, settings: &Ros2Config, last: &mut Option<usize>) {
+    let Some(latest) = live.latest_pose() else {
+        return;
+    };
+    if *last == Some(latest.index) {
+        return;
+    }
+    *last = Some(latest.index);
+    let stamp = Time::from_seconds(latest.timestamp);
+    let pose = PoseMessage::from_pose(&latest.pose);
+    // Publishing fails only when the writer's queue is full: the next pose replaces this one.
+    let _ = io.pose_out.publish(PoseStamped {
+        header: header(&settings.map_frame, stamp),
+        pose,
+    });
+    let _ = io.tf.publish(TfMessage {
+        transforms: vec![TransformStamped {
+            header: header(&settings.map_frame, stamp),
+            child_frame_id: settings.camera_frame.clone(),
+            transform: pose,
+        }],
+    });
+}
+
+/// Publishes the map at `map_rate` when it changed since the last time.
+fn publish_map(
+    io: &Io,
+    live: &LiveMap,
+    settings: &Ros2Config,
+    status: &Status,
+    last: &mut Option<(Instant, usize)>,
+) {
+    if settings.map_rate <= 0.0 || !live.has_map() {
+        return;
+    }
+    let period = Duration::from_secs_f64(1.0 / settings.map_rate);
+    if last.is_some_and(|(t, _)| t.elapsed() < period) {
+        return;
+    }
+    let frames = live.status().frames_integrated;
+    if frames == 0 || last.is_some_and(|(_, f)| f == frames) {
+        return;
+    }
+    let Ok(points) = live.read(|view| view.map.coloured_points()) else {
+        return;
+    };
+    let n = points.vertices.len();
+    let step = n.div_ceil(settings.map_max_points.max(1)).max(1);
+    let positions: Vec<[f32; 3]> = points.vertices.iter().step_by(step).copied().collect();
+    let colours: Vec<[u8; 3]> = points.colours.iter().step_by(step).copied().collect();
+    let stamp = live
+        .latest_pose()
+        .map_or(Time::default(), |p| Time::from_seconds(p.timestamp));
+    let cloud = PointCloud2::xyz_rgb(
+        header(&settings.map_frame, stamp),
+        &positions,
+        &colours,
+        None,
+    );
+    if io.map.publish(cloud).is_ok() {
+        status.count(Counter::MapsPublished);
+    }
+    *last = Some((Instant::now(), frames));
+}
+
+/// The query thread: answers each text on the live map and publishes the heatmap, the best set
+/// and, for `grasp: TEXT`, the grasp.
+fn spawn_query_worker(
+    node: &mut Node,
+    settings: &Ros2Config,
+    live: LiveMap,
+    segmenter: Box<dyn Segmenter>,
+    status: Arc<Status>,
+) -> Result<(mpsc::Sender<String>, JoinHandle<()>)> {
+    let heatmap: Publisher<PointCloud2> = advertise(node, &settings.heatmap_topic, POINT_CLOUD2)?;
+    let best: Publisher<PointCloud2> = advertise(node, &settings.best_topic, POINT_CLOUD2)?;
+    let grasp: Publisher<PoseStamped> = advertise(node, &settings.grasp_topic, POSE_STAMPED)?;
+    let frame = settings.map_frame.clone();
+    let (sender, receiver) = mpsc::channel::<String>();
+    let handle = std::thread::Builder::new()
+        .name("vlem-ros2-query".into())
+        .spawn(move || {
+            for text in receiver {
+                let (text, wants_grasp) = match text.trim().strip_prefix("grasp:") {
+                    Some(rest) => (rest.trim().to_owned(), true),
+                    None => (text.trim().to_owned(), false),
+                };
+                if text.is_empty() {
+                    eprintln!("vlem ros2: an empty query was ignored");
+                    continue;
+                }
+                let options = AnswerOptions {
+                    grasp: wants_grasp.then(GraspParams::default),
+                    indices: false,
+                };
+                let answered = match answer_live(
+                    &live,
+                    segmenter.as_ref(),
+                    std::slice::from_ref(&text),
+                    &options,
+                ) {
+                    Ok(answered) => answered,
+                    Err(e) => {
+                        status.warn(
+                            Counter::QueryErrors,
+                            &format!("query \"{text}\" failed: {e}"),
+                        );
+                        continue;
+                    }
+                };
+                let (answered, positions) = answered;
+                let stamp = live
+                    .latest_pose()
+                    .map_or(Time::default(), |p| Time::from_seconds(p.timestamp));
+                let head = || header(&frame, stamp);
+                let scores = answered.scores.scores.first().cloned().unwrap_or_default();
+                let colours: Vec<[u8; 3]> = scores.iter().map(|&s| jet(s)).collect();
+                let _ = heatmap.publish(PointCloud2::xyz_rgb(
+                    head(),
+                    &positions,
+                    &colours,
+                    Some(("similarity", &scores)),
+                ));
+                let best_set = answered
+                    .sets
+                    .iter()
+                    .filter(|s| s.query == 0 && !s.indices.is_empty())
+                    .max_by(|a, b| a.mean_score.total_cmp(&b.mean_score));
+                let (points, point_colours): (Vec<[f32; 3]>, Vec<[u8; 3]>) = best_set
+                    .map(|set| {
+                        set.indices
+                            .iter()
+                            .filter_map(|&i| Some((*positions.get(i)?, jet(*scores.get(i)?))))
+                            .unzip()
+                    })
+                    .unwrap_or_default();
+                let _ = best.publish(PointCloud2::xyz_rgb(head(), &points, &point_colours, None));
+                if let Some(Some(g)) = answered.grasps.first() {
+                    let pose = vlem_core::Pose::from_parts(
+                        nalgebra::Translation3::new(g.position[0], g.position[1], g.position[2]),
+                        g.rotation,
+                    );
+                    let _ = grasp.publish(PoseStamped {
+                        header: head(),
+                        pose: PoseMessage::from_pose(&pose),
+                    });
+                }
+                status.count(Counter::Queries);
+                eprintln!(
+                    "vlem ros2: answered \"{text}\" on {} points ({} frames), best set {} points{}",
+                    positions.len(),
+                    answered.answer.frames_integrated,
+                    points.len(),
+                    if wants_grasp { ", grasp published" } else { "" }
+                );
+            }
+        })
+        .map_err(|e| Ros2Error::Config(format!("cannot start the query thread: {e}")))?;
+    Ok((sender, handle))
+}
