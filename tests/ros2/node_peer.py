@@ -2,7 +2,9 @@
 (`cyclonedds` from PyPI), on loopback, speaking ROS 2 topic names and message types.
 
 The peer plays a RealSense camera (colour `rgb8`, aligned depth `16UC1`, camera info) and a
-localisation node (`PoseStamped` of the optical frame) with the committed living-room frames,
+localisation node (`PoseStamped` of the optical frame, or with `--tf` the tf tree: a latched
+`/tf_static` base_link -> camera_color_optical_frame and `/tf` map -> base_link per frame) with
+the committed living-room frames,
 sends malformed and out-of-order messages the node must survive, asks a query, and checks what
 the node publishes: the tracked pose (PoseStamped and /tf), the map (PointCloud2 xyz + rgb), the
 heatmap (with a `similarity` field), the best point set and a grasp. Then it stops the node with
@@ -10,7 +12,7 @@ SIGINT and checks the saved map and the counters.
 
     python3 -m venv bench/.venv-ros2 && bench/.venv-ros2/bin/pip install cyclonedds==11.0.1 numpy pillow
     cargo build --release --features ros2
-    VLEM_BIN=target/release/vlem bench/.venv-ros2/bin/python tests/ros2/node_peer.py
+    VLEM_BIN=target/release/vlem bench/.venv-ros2/bin/python tests/ros2/node_peer.py [--tf]
 
 Exits 0 when every check passes; prints what failed otherwise.
 """
@@ -55,6 +57,20 @@ from cyclonedds.util import duration  # noqa: E402
 sys.path.insert(0, str(HERE))
 import ros2_msgs as m  # noqa: E402
 
+LATCHED = Qos(
+    Policy.Reliability.Reliable(duration(milliseconds=100)),
+    Policy.Durability.TransientLocal,
+    Policy.History.KeepLast(1),
+)
+# The camera mount of the --tf mode: base_link -> optical frame (a yaw of 10 degrees, then ROS's
+# optical rotation), as a robot's URDF would give it.
+MOUNT = np.array([
+    [0.0, -0.17364818, 0.98480775, 0.10],
+    [-1.0, 0.0, 0.0, 0.02],
+    [0.0, -0.98480775, -0.17364818, 0.50],
+    [0.0, 0.0, 0.0, 1.0],
+])
+USE_TF = "--tf" in sys.argv
 SENSOR = Qos(Policy.Reliability.BestEffort, Policy.Durability.Volatile, Policy.History.KeepLast(5))
 RELIABLE = Qos(
     Policy.Reliability.Reliable(duration(milliseconds=100)),
@@ -92,6 +108,17 @@ def quaternion(r):
     q[j] = (r[j, i] + r[i, j]) / s
     q[k] = (r[k, i] + r[i, k]) / s
     return (q[0], q[1], q[2], (r[k, j] - r[j, k]) / s)
+
+
+def transform(parent, child, i, t):
+    p = pose_message(t)
+    return m.TransformStamped(
+        header=m.Header(stamp=stamp(i), frame_id=parent), child_frame_id=child,
+        transform=m.Transform(
+            translation=m.Vector3(x=p.position.x, y=p.position.y, z=p.position.z),
+            rotation=p.orientation,
+        ),
+    )
 
 
 def pose_message(t):
@@ -150,9 +177,10 @@ threshold = 0.75
 [ros2]
 domain_id = {domain}
 localhost_only = true
-pose_topic = "/camera/pose"
+{'tf = ["map", "camera_color_optical_frame"]' if USE_TF else 'pose_topic = "/camera/pose"'}
 pose_type = "pose-stamped"
 map_rate = 5.0
+map_max_points = 60000
 queue = {N_FRAMES}
 """
     )
@@ -190,7 +218,7 @@ queue = {N_FRAMES}
     assert status["run"]["frames_processed"] == N_FRAMES, status["run"]
     saved = (work / "map.vlem").read_bytes()
     assert saved.startswith(b"VLEMMAP\0"), saved[:8]
-    print("PASS: vlem ros2 against cyclonedds")
+    print(f"PASS: vlem ros2 against cyclonedds, poses from {'tf' if USE_TF else 'a PoseStamped topic'}")
 
 
 def check(domain):
@@ -200,6 +228,8 @@ def check(domain):
     depth_w = DataWriter(dp, topic("/camera/aligned_depth_to_color/image_raw", m.Image), qos=SENSOR)
     info_w = DataWriter(dp, topic("/camera/color/camera_info", m.CameraInfo), qos=SENSOR)
     pose_w = DataWriter(dp, topic("/camera/pose", m.PoseStamped), qos=RELIABLE)
+    tf_w = DataWriter(dp, topic("/tf", m.TFMessage), qos=RELIABLE)
+    tf_static_w = DataWriter(dp, Topic(dp, "rt/tf_static", m.TFMessage, qos=LATCHED), qos=LATCHED)
     query_w = DataWriter(dp, topic("/vlem/query", m.String), qos=RELIABLE)
     pose_r = DataReader(dp, topic("/vlem/pose", m.PoseStamped), qos=RELIABLE)
     tf_r = DataReader(dp, topic("/tf", m.TFMessage), qos=RELIABLE)
@@ -208,13 +238,16 @@ def check(domain):
     best_r = DataReader(dp, topic("/vlem/best", m.PointCloud2), qos=RELIABLE)
     grasp_r = DataReader(dp, topic("/vlem/grasp", m.PoseStamped), qos=RELIABLE)
 
-    writers = [colour_w, depth_w, info_w, pose_w, query_w]
+    writers = [colour_w, depth_w, info_w, tf_w if USE_TF else pose_w, query_w]
     wait_for("the node's subscriptions", lambda: all(w.get_matched_subscriptions() for w in writers), 60)
     readers = [pose_r, tf_r, map_r, heat_r, best_r, grasp_r]
     wait_for("the node's publishers", lambda: all(r.get_matched_publications() for r in readers), 30)
     time.sleep(0.3)
 
     poses = trajectory()
+    if USE_TF:
+        # Latched, written once before any frame (a late-joining reader still gets it).
+        tf_static_w.write(m.TFMessage(transforms=[transform("base_link", "camera_color_optical_frame", 0, MOUNT)]))
     k = [525.0, 0, 319.5, 0, 525.0, 239.5, 0, 0, 1]
     p = [525.0, 0, 319.5, 0, 0, 525.0, 239.5, 0, 0, 0, 1, 0]
     frame_id = "camera_color_optical_frame"
@@ -234,7 +267,11 @@ def check(domain):
             header=m.Header(stamp=stamp(i), frame_id=frame_id), height=480, width=640,
             distortion_model="plumb_bob", d=[0.0] * 5, k=k, r=[1.0, 0, 0, 0, 1, 0, 0, 0, 1], p=p,
         ))
-        pose_w.write(m.PoseStamped(header=m.Header(stamp=stamp(i), frame_id="map"), pose=pose_message(poses[i])))
+        if USE_TF:
+            base = poses[i] @ np.linalg.inv(MOUNT)
+            tf_w.write(m.TFMessage(transforms=[transform("map", "base_link", i, base)]))
+        else:
+            pose_w.write(m.PoseStamped(header=m.Header(stamp=stamp(i), frame_id="map"), pose=pose_message(poses[i])))
         if i == 3:
             # Malformed: an encoding vlem cannot use (counted, skipped, the node goes on).
             grey = np.asarray(PilImage.open(FRAMES / "color" / f"{i:05}.jpg").convert("L"))
@@ -248,7 +285,6 @@ def check(domain):
                  any(abs(seconds(r.header.stamp) - seconds(stamp(i))) < 1e-6 for r in received_poses)),
                  float(os.environ.get("VLEM_TEST_TIMEOUT", "60")))
     # Out of order: a frame stamped before the last one (refused and counted).
-    pose_w.write(m.PoseStamped(header=m.Header(stamp=stamp(2), frame_id="map"), pose=pose_message(poses[2])))
     colour_w.write(image(2, "rgb8", rgb))
     depth_w.write(image(2, "16UC1", depth))
     time.sleep(0.5)
@@ -258,14 +294,18 @@ def check(domain):
     got = (last.pose.position.x, last.pose.position.y, last.pose.position.z)
     assert last.header.frame_id == "map", last.header.frame_id
     assert np.allclose(got, t[:3, 3], atol=1e-9), (got, t[:3, 3])
-    tfs = take_all(tf_r)
+    q = quaternion(t[:3, :3])
+    got_q = (last.pose.orientation.x, last.pose.orientation.y, last.pose.orientation.z, last.pose.orientation.w)
+    assert np.allclose(got_q, q, atol=1e-9) or np.allclose(got_q, -np.array(q), atol=1e-9), (got_q, q)
+    # The node's transforms (in --tf mode the peer reads its own /tf messages too).
+    tfs = [x for x in take_all(tf_r) if x.transforms[0].child_frame_id == "vlem_camera_optical_frame"]
     assert tfs and tfs[-1].transforms[0].header.frame_id == "map", tfs[-1:]
-    assert tfs[-1].transforms[0].child_frame_id == "vlem_camera_optical_frame"
     print(f"peer: {len(received_poses)} poses and {len(tfs)} tf messages; the last pose is the one sent")
 
     maps = []
+    # 8 frames make ~430k points; clouds are published as an even subsample of at most 60000.
     wait_for("a map with every frame", lambda: bool(maps.extend(take_all(map_r)) or
-             (maps and maps[-1].width > 100_000)), 30)
+             (maps and maps[-1].width > 50_000)), 30)
     cloud = maps[-1]
     assert cloud_fields(cloud) == [("x", 0, 7), ("y", 4, 7), ("z", 8, 7), ("rgb", 12, 7)], cloud_fields(cloud)
     assert cloud.header.frame_id == "map" and cloud.height == 1 and cloud.point_step == 16
@@ -281,7 +321,7 @@ def check(domain):
     h = heat[-1]
     assert [f[0] for f in cloud_fields(h)] == ["x", "y", "z", "rgb", "similarity"], cloud_fields(h)
     similarity = np.frombuffer(h.data, dtype="<f4").reshape(-1, 5)[:, 4]
-    assert h.width >= cloud.width and 0.0 <= similarity.min() and similarity.max() <= 1.0
+    assert 50_000 < h.width <= 60_000 and 0.0 <= similarity.min() and similarity.max() <= 1.0
     b = best[-1]
     assert 0 < b.width < h.width, (b.width, h.width)
     g = grasp[-1].pose.position

@@ -552,6 +552,10 @@ pub struct Ros2Config {
     /// Type of `pose_topic`: `odometry` (`nav_msgs/msg/Odometry`, default) or `pose-stamped`.
     #[serde(default)]
     pub pose_type: Ros2PoseType,
+    /// Poses from `/tf` and `/tf_static` instead: `[parent, child]` frame ids, e.g.
+    /// `["map", "camera_color_optical_frame"]`; the parent must be an ancestor of the child.
+    #[serde(default)]
+    pub tf: Option<[String; 2]>,
     /// Largest stamp difference (s) between a colour and a depth image paired into a frame, and
     /// between a frame and the pose it takes; default 0.02.
     #[serde(default = "default_rosbag2_max_time_difference")]
@@ -575,7 +579,8 @@ pub struct Ros2Config {
     /// How often the map is published (Hz); 0 = never; default 1.
     #[serde(default = "default_ros2_map_rate")]
     pub map_rate: f64,
-    /// Most points per published map (an even subsample of larger maps); default 300000.
+    /// Most points per published cloud (map, heatmap, best set: an even subsample of larger
+    /// ones); default 300000.
     #[serde(default = "default_ros2_map_max_points")]
     pub map_max_points: usize,
     /// Queries, `std_msgs/msg/String`: a text, or `grasp: TEXT` for a grasp too; default
@@ -663,6 +668,7 @@ impl Default for Ros2Config {
             depth_scale: default_ros2_depth_scale(),
             pose_topic: None,
             pose_type: Ros2PoseType::default(),
+            tf: None,
             max_time_difference: default_rosbag2_max_time_difference(),
             queue: default_ros2_queue(),
             map_frame: default_ros2_map_frame(),

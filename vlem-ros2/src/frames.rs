@@ -9,6 +9,7 @@ use std::collections::VecDeque;
 
 use vlem_core::{DepthImage, Frame, Intrinsics, Pose, RgbImage};
 use vlem_datasets::rosbag2::messages::{CompressedDepth, inverse_depth_to_metres};
+use vlem_datasets::rosbag2::poses::TfTree;
 
 use crate::msgs::{CameraInfo, CompressedImage, Image};
 use crate::status::{Counter, Status};
@@ -75,33 +76,56 @@ const KEEP_SECONDS: f64 = 0.5;
 /// At most this many images of one kind wait for a partner.
 const MAX_WAITING: usize = 16;
 
+/// Where frames get their poses.
+#[derive(Clone, Debug, PartialEq, Eq)]
+pub enum PoseSource {
+    /// Nowhere: the tracker estimates them.
+    None,
+    /// A pose topic ([`Assembler::pose`]).
+    Topic,
+    /// The tf tree ([`Assembler::transform`]) along `[parent, child]`.
+    Tf([String; 2]),
+}
+
+/// The poses received so far.
+enum Poses {
+    None,
+    Topic(VecDeque<(f64, Pose)>),
+    Tf { tree: TfTree, frames: [String; 2] },
+}
+
 /// Assembles frames from the messages of the node's topics.
 pub struct Assembler {
     tolerance: f64,
     depth_scale: f32,
-    wants_poses: bool,
     camera: Option<Intrinsics>,
     colour: VecDeque<ImageMessage>,
     depth: VecDeque<ImageMessage>,
     /// Paired images waiting for a pose at their stamp.
     paired: VecDeque<(ImageMessage, ImageMessage)>,
-    poses: VecDeque<(f64, Pose)>,
+    poses: Poses,
     newest: f64,
 }
 
 impl Assembler {
-    /// An assembler pairing within `tolerance` seconds; `wants_poses` when a pose topic is
-    /// configured (frames then carry the pose at their stamp).
-    pub fn new(tolerance: f64, depth_scale: f32, wants_poses: bool) -> Self {
+    /// An assembler pairing within `tolerance` seconds, with poses from `source` (frames then
+    /// carry the pose at their stamp).
+    pub fn new(tolerance: f64, depth_scale: f32, source: PoseSource) -> Self {
         Self {
             tolerance,
             depth_scale,
-            wants_poses,
             camera: None,
             colour: VecDeque::new(),
             depth: VecDeque::new(),
             paired: VecDeque::new(),
-            poses: VecDeque::new(),
+            poses: match source {
+                PoseSource::None => Poses::None,
+                PoseSource::Topic => Poses::Topic(VecDeque::new()),
+                PoseSource::Tf(frames) => Poses::Tf {
+                    tree: TfTree::default(),
+                    frames,
+                },
+            },
             newest: f64::NEG_INFINITY,
         }
     }
@@ -153,12 +177,21 @@ impl Assembler {
         self.depth.push_back(message);
     }
 
-    /// Takes a pose of the camera's optical frame at `stamp`.
+    /// Takes a pose of the camera's optical frame at `stamp` (pose topic).
     pub fn pose(&mut self, stamp: f64, pose: Pose) {
-        self.poses.push_back((stamp, pose));
-        // Poses come at odometry rates: keep a few seconds.
-        while self.poses.len() > 1000 {
-            self.poses.pop_front();
+        if let Poses::Topic(poses) = &mut self.poses {
+            poses.push_back((stamp, pose));
+            // Poses come at odometry rates: keep a few seconds.
+            while poses.len() > 1000 {
+                poses.pop_front();
+            }
+        }
+    }
+
+    /// Takes one transform of `/tf` (`fixed = false`) or `/tf_static`.
+    pub fn transform(&mut self, parent: &str, child: &str, stamp: f64, pose: Pose, fixed: bool) {
+        if let Poses::Tf { tree, .. } = &mut self.poses {
+            tree.insert(parent, child, stamp, pose, fixed);
         }
     }
 
@@ -168,23 +201,24 @@ impl Assembler {
         self.pair();
         self.drop_stale(status);
         let mut out = Vec::new();
+        if let Poses::Tf { tree, .. } = &mut self.poses {
+            tree.finish();
+        }
         while let Some((colour, depth)) = self.paired.front() {
             let time = depth.stamp();
-            let pose = if self.wants_poses {
-                match self.pose_at(time) {
-                    PoseLookup::Found(pose) => Some(pose),
-                    PoseLookup::Wait if self.newest - time < KEEP_SECONDS => break,
-                    PoseLookup::Wait | PoseLookup::None => {
-                        status.count(Counter::NoPose);
-                        self.paired.pop_front();
-                        continue;
-                    }
+            let pose = match self.pose_at(time) {
+                PoseLookup::NotWanted => None,
+                PoseLookup::Found(pose) => Some(pose),
+                PoseLookup::Wait(_) if self.newest - time < KEEP_SECONDS => break,
+                PoseLookup::Wait(why) | PoseLookup::None(why) => {
+                    status.warn(Counter::NoPose, &format!("a frame without a pose: {why}"));
+                    self.paired.pop_front();
+                    continue;
                 }
-            } else {
-                None
             };
             let (colour, depth) = (colour.clone(), depth.clone());
             self.paired.pop_front();
+            self.forget_poses_before(time);
             match self.make_frame(&colour, &depth, time, pose) {
                 Ok(frame) => out.push(frame),
                 Err((counter, message)) => status.warn(counter, &message),
@@ -237,14 +271,50 @@ impl Assembler {
     }
 
     fn pose_at(&self, time: f64) -> PoseLookup {
-        let nearest = self
-            .poses
-            .iter()
-            .min_by(|a, b| (a.0 - time).abs().total_cmp(&(b.0 - time).abs()));
-        match nearest {
-            Some((t, pose)) if (t - time).abs() <= self.tolerance => PoseLookup::Found(*pose),
-            _ if self.poses.back().is_none_or(|(t, _)| *t < time) => PoseLookup::Wait,
-            _ => PoseLookup::None,
+        let tolerance = self.tolerance;
+        match &self.poses {
+            Poses::None => PoseLookup::NotWanted,
+            Poses::Topic(poses) => {
+                let nearest = poses
+                    .iter()
+                    .min_by(|a, b| (a.0 - time).abs().total_cmp(&(b.0 - time).abs()));
+                match nearest {
+                    Some((t, pose)) if (t - time).abs() <= tolerance => PoseLookup::Found(*pose),
+                    _ if poses.back().is_none_or(|(t, _)| *t < time) => {
+                        PoseLookup::Wait("no pose at or after its stamp".to_owned())
+                    }
+                    _ => PoseLookup::None(format!("no pose within {tolerance} s of its stamp")),
+                }
+            }
+            Poses::Tf {
+                tree,
+                frames: [parent, child],
+            } => {
+                let chain = match tree.chain(parent, child) {
+                    Ok(chain) => chain,
+                    Err(why) => return PoseLookup::Wait(format!("tf {parent} -> {child}: {why}")),
+                };
+                match tree.covered_until(&chain) {
+                    Some(until) if until >= time - tolerance => {
+                        match tree.lookup(&chain, time, tolerance) {
+                            Some(pose) => PoseLookup::Found(pose),
+                            None => PoseLookup::None(format!(
+                                "tf {parent} -> {child} has no transform near its stamp"
+                            )),
+                        }
+                    }
+                    _ => PoseLookup::Wait(format!(
+                        "tf {parent} -> {child} has no transform at or after its stamp"
+                    )),
+                }
+            }
+        }
+    }
+
+    /// Forgets poses the next frames cannot need (their stamps only grow).
+    fn forget_poses_before(&mut self, time: f64) {
+        if let Poses::Tf { tree, .. } = &mut self.poses {
+            tree.forget_before(time - KEEP_SECONDS);
         }
     }
 
@@ -294,10 +364,13 @@ impl Assembler {
 }
 
 enum PoseLookup {
+    /// Frames carry no pose.
+    NotWanted,
     Found(Pose),
-    /// No pose yet at or after this stamp: it may still come.
-    Wait,
-    None,
+    /// No pose yet at or after this stamp: it may still come (why, if it never does).
+    Wait(String),
+    /// None will come (why).
+    None(String),
 }
 
 #[cfg(test)]
@@ -340,7 +413,7 @@ mod tests {
     #[test]
     fn pairs_by_stamp_and_counts_what_it_drops() {
         let status = Status::default();
-        let mut a = Assembler::new(0.02, 1000.0, false);
+        let mut a = Assembler::new(0.02, 1000.0, PoseSource::None);
         // Before camera info: paired frames are counted as skipped.
         a.colour(colour(1.0));
         a.depth(depth(1.004));
@@ -375,7 +448,7 @@ mod tests {
     #[test]
     fn frames_wait_for_their_pose() {
         let status = Status::default();
-        let mut a = Assembler::new(0.02, 1000.0, true);
+        let mut a = Assembler::new(0.02, 1000.0, PoseSource::Topic);
         a.camera_info(&info(2), &status);
         a.colour(colour(1.0));
         a.depth(depth(1.0));
@@ -391,5 +464,30 @@ mod tests {
         a.depth(depth(1.5));
         assert!(a.frames(&status).is_empty());
         assert_eq!(status.get(Counter::NoPose), 1);
+    }
+
+    #[test]
+    fn frames_take_their_pose_from_the_tf_chain() {
+        let status = Status::default();
+        let frames = ["map".to_owned(), "camera".to_owned()];
+        let mut a = Assembler::new(0.02, 1000.0, PoseSource::Tf(frames));
+        a.camera_info(&info(2), &status);
+        a.transform(
+            "base",
+            "camera",
+            0.0,
+            Pose::translation(0.0, 0.0, 1.0),
+            true,
+        );
+        a.transform("map", "base", 0.9, Pose::translation(1.0, 0.0, 0.0), false);
+        a.colour(colour(1.0));
+        a.depth(depth(1.0));
+        // The moving edge ends before the frame: it waits.
+        assert!(a.frames(&status).is_empty());
+        a.transform("map", "base", 1.1, Pose::translation(3.0, 0.0, 0.0), false);
+        let frames = a.frames(&status);
+        assert_eq!(frames.len(), 1);
+        let t = frames[0].pose.unwrap().translation.vector;
+        assert!((t.x - 2.0).abs() < 1e-9 && (t.z - 1.0).abs() < 1e-9, "{t}");
     }
 }

@@ -32,7 +32,7 @@ use vlem_query::grasp::GraspParams;
 use vlem_query::heatmap::jet;
 
 use crate::error::{Result, Ros2Error};
-use crate::frames::{Assembler, ImageMessage};
+use crate::frames::{Assembler, ImageMessage, PoseSource};
 use crate::msgs::{
     CameraInfo, CompressedImage, Header, Image, Odometry, PointCloud2, PoseMessage, PoseStamped,
     StringMessage, TfMessage, Time, TransformStamped,
@@ -88,10 +88,15 @@ pub fn run_node(
 
     let (queries, query_thread) =
         spawn_query_worker(&mut node, settings, live.clone(), segmenter, status.clone())?;
+    let source = match (&settings.pose_topic, &settings.tf) {
+        (Some(_), _) => PoseSource::Topic,
+        (None, Some(frames)) => PoseSource::Tf(frames.clone()),
+        (None, None) => PoseSource::None,
+    };
     let mut assembler = Assembler::new(
         settings.max_time_difference,
         settings.depth_scale as f32,
-        settings.pose_topic.is_some(),
+        source,
     );
     let mut pipeline = Some(pipeline);
     let mut running: Option<(FrameSender, JoinHandle<RunOutcome>)> = None;
@@ -106,6 +111,7 @@ pub fn run_node(
         let mut busy = got_images;
         busy |= io.take_camera_info(&mut assembler, &status);
         busy |= io.take_poses(&mut assembler, &status);
+        busy |= io.take_transforms(&mut assembler, &status);
         while let Some(text) = io.take_query(&status) {
             busy = true;
             if queries.send(text).is_err() {
@@ -220,7 +226,7 @@ fn start_pipeline(
             settings.colour_topic, settings.depth_topic
         ),
         intrinsics: camera,
-        has_poses: settings.pose_topic.is_some(),
+        has_poses: settings.pose_topic.is_some() || settings.tf.is_some(),
         capacity: settings.queue,
     };
     let (sender, mut stream) = frame_stream(spec)?;
@@ -268,10 +274,18 @@ fn validate(settings: &Ros2Config, pipeline: &Pipeline) -> Result<()> {
     if settings.queue == 0 {
         return bad("[ros2] queue must be at least 1".into());
     }
-    if pipeline.tracker().needs_dataset_poses() && settings.pose_topic.is_none() {
+    if settings.pose_topic.is_some() && settings.tf.is_some() {
+        return bad(
+            "[ros2]: set pose_topic or tf, not both (two sources of the same poses)".into(),
+        );
+    }
+    if pipeline.tracker().needs_dataset_poses()
+        && settings.pose_topic.is_none()
+        && settings.tf.is_none()
+    {
         return bad(format!(
-            "the tracker `{}` reads poses from the source, but [ros2] has no pose_topic; set one \
-             or use [tracker] kind = \"odometry\" or \"frame-to-model\"",
+            "the tracker `{}` reads poses from the source, but [ros2] has no pose_topic or tf; \
+             set one or use [tracker] kind = \"odometry\" or \"frame-to-model\"",
             pipeline.tracker().name()
         ));
     }
@@ -315,6 +329,18 @@ fn reliable_qos() -> QosProfile {
         .history(History::KeepLast { depth: 10 })
 }
 
+/// tf2's listener QoS for `/tf`: reliable, keep last 100.
+fn tf_qos() -> QosProfile {
+    reliable_qos().history(History::KeepLast { depth: 100 })
+}
+
+/// tf2's static listener QoS: reliable, transient local (latched), keep last 1.
+fn tf_static_qos() -> QosProfile {
+    reliable_qos()
+        .durability(Durability::TransientLocal)
+        .history(History::KeepLast { depth: 1 })
+}
+
 /// Whether an image topic carries `CompressedImage` (image_transport's topic naming).
 fn is_compressed_topic(topic: &str) -> bool {
     topic.ends_with("/compressed") || topic.ends_with("/compressedDepth")
@@ -354,6 +380,7 @@ const IMAGE: (&str, &str) = ("sensor_msgs", "Image");
 const COMPRESSED_IMAGE: (&str, &str) = ("sensor_msgs", "CompressedImage");
 const POINT_CLOUD2: (&str, &str) = ("sensor_msgs", "PointCloud2");
 const POSE_STAMPED: (&str, &str) = ("geometry_msgs", "PoseStamped");
+const TF_MESSAGE: (&str, &str) = ("tf2_msgs", "TFMessage");
 
 /// A subscription to raw or compressed images.
 enum ImageSubscription {
@@ -401,6 +428,8 @@ struct Io {
     depth: ImageSubscription,
     camera_info: Subscription<CameraInfo>,
     pose: Option<PoseSubscription>,
+    /// `/tf` and `/tf_static`, when poses come from tf.
+    tf_in: Option<(Subscription<TfMessage>, Subscription<TfMessage>)>,
     query: Subscription<StringMessage>,
     pose_out: Publisher<PoseStamped>,
     tf: Publisher<TfMessage>,
@@ -426,7 +455,15 @@ impl Io {
                 )?),
             }),
         };
+        let tf_in = match &settings.tf {
+            None => None,
+            Some(_) => Some((
+                subscribe(node, "/tf", TF_MESSAGE, tf_qos())?,
+                subscribe(node, "/tf_static", TF_MESSAGE, tf_static_qos())?,
+            )),
+        };
         Ok(Self {
+            tf_in,
             colour: ImageSubscription::new(node, &settings.colour_topic)?,
             depth: ImageSubscription::new(node, &settings.depth_topic)?,
             camera_info: subscribe(
@@ -443,7 +480,7 @@ impl Io {
                 reliable_qos(),
             )?,
             pose_out: advertise(node, &settings.pose_out_topic, POSE_STAMPED)?,
-            tf: advertise(node, "/tf", ("tf2_msgs", "TFMessage"))?,
+            tf: advertise(node, "/tf", TF_MESSAGE)?,
             map: advertise(node, &settings.map_topic, POINT_CLOUD2)?,
         })
     }
@@ -510,6 +547,46 @@ impl Io {
                 }
             }
         }
+    }
+
+    fn take_transforms(&self, assembler: &mut Assembler, status: &Status) -> bool {
+        let Some((moving, fixed)) = &self.tf_in else {
+            return false;
+        };
+        let mut any = false;
+        for (subscription, is_static) in [(moving, false), (fixed, true)] {
+            loop {
+                match subscription.take() {
+                    Ok(Some((message, _))) => {
+                        any = true;
+                        for t in message.transforms {
+                            match t.transform.to_pose() {
+                                Ok(pose) => assembler.transform(
+                                    &t.header.frame_id,
+                                    &t.child_frame_id,
+                                    t.header.stamp.seconds(),
+                                    pose,
+                                    is_static,
+                                ),
+                                Err(e) => status.warn(
+                                    Counter::BadMessage,
+                                    &format!(
+                                        "tf {} -> {}: {e}",
+                                        t.header.frame_id, t.child_frame_id
+                                    ),
+                                ),
+                            }
+                        }
+                    }
+                    Ok(None) => break,
+                    Err(e) => {
+                        status.warn(Counter::BadMessage, &format!("tf message: {e:?}"));
+                        break;
+                    }
+                }
+            }
+        }
+        any
     }
 
     fn take_query(&self, status: &Status) -> Option<String> {
@@ -609,6 +686,7 @@ fn spawn_query_worker(
     let best: Publisher<PointCloud2> = advertise(node, &settings.best_topic, POINT_CLOUD2)?;
     let grasp: Publisher<PoseStamped> = advertise(node, &settings.grasp_topic, POSE_STAMPED)?;
     let frame = settings.map_frame.clone();
+    let max_points = settings.map_max_points.max(1);
     let (sender, receiver) = mpsc::channel::<String>();
     let handle = std::thread::Builder::new()
         .name("vlem-ros2-query".into())
@@ -647,36 +725,66 @@ fn spawn_query_worker(
                     .map_or(Time::default(), |p| Time::from_seconds(p.timestamp));
                 let head = || header(&frame, stamp);
                 let scores = answered.scores.scores.first().cloned().unwrap_or_default();
-                let colours: Vec<[u8; 3]> = scores.iter().map(|&s| jet(s)).collect();
-                let _ = heatmap.publish(PointCloud2::xyz_rgb(
-                    head(),
-                    &positions,
-                    &colours,
-                    Some(("similarity", &scores)),
-                ));
+                let sent = |result: std::result::Result<(), String>, what: &str| {
+                    if let Err(e) = result {
+                        status.warn(Counter::QueryErrors, &format!("publishing the {what}: {e}"));
+                    }
+                };
+                // Published clouds are capped like the map: an even subsample of larger ones.
+                let step = positions.len().div_ceil(max_points).max(1);
+                let shown: Vec<usize> = (0..positions.len()).step_by(step).collect();
+                let pick = |indices: &[usize]| -> (Vec<[f32; 3]>, Vec<[u8; 3]>, Vec<f32>) {
+                    let mut out = (Vec::new(), Vec::new(), Vec::new());
+                    for &i in indices {
+                        if let (Some(p), Some(&s)) = (positions.get(i), scores.get(i)) {
+                            out.0.push(*p);
+                            out.1.push(jet(s));
+                            out.2.push(s);
+                        }
+                    }
+                    out
+                };
+                let (points, colours, values) = pick(&shown);
+                sent(
+                    heatmap
+                        .publish(PointCloud2::xyz_rgb(
+                            head(),
+                            &points,
+                            &colours,
+                            Some(("similarity", &values)),
+                        ))
+                        .map_err(|e| e.to_string()),
+                    "heatmap",
+                );
                 let best_set = answered
                     .sets
                     .iter()
                     .filter(|s| s.query == 0 && !s.indices.is_empty())
                     .max_by(|a, b| a.mean_score.total_cmp(&b.mean_score));
-                let (points, point_colours): (Vec<[f32; 3]>, Vec<[u8; 3]>) = best_set
-                    .map(|set| {
-                        set.indices
-                            .iter()
-                            .filter_map(|&i| Some((*positions.get(i)?, jet(*scores.get(i)?))))
-                            .unzip()
-                    })
-                    .unwrap_or_default();
-                let _ = best.publish(PointCloud2::xyz_rgb(head(), &points, &point_colours, None));
+                let best_indices: Vec<usize> = best_set.map_or_else(Vec::new, |set| {
+                    let step = set.indices.len().div_ceil(max_points).max(1);
+                    set.indices.iter().step_by(step).copied().collect()
+                });
+                let (points, colours, _) = pick(&best_indices);
+                sent(
+                    best.publish(PointCloud2::xyz_rgb(head(), &points, &colours, None))
+                        .map_err(|e| e.to_string()),
+                    "best set",
+                );
                 if let Some(Some(g)) = answered.grasps.first() {
                     let pose = vlem_core::Pose::from_parts(
                         nalgebra::Translation3::new(g.position[0], g.position[1], g.position[2]),
                         g.rotation,
                     );
-                    let _ = grasp.publish(PoseStamped {
-                        header: head(),
-                        pose: PoseMessage::from_pose(&pose),
-                    });
+                    sent(
+                        grasp
+                            .publish(PoseStamped {
+                                header: head(),
+                                pose: PoseMessage::from_pose(&pose),
+                            })
+                            .map_err(|e| e.to_string()),
+                        "grasp",
+                    );
                 }
                 status.count(Counter::Queries);
                 eprintln!(

@@ -32,8 +32,7 @@
 
 pub mod cdr;
 pub mod messages;
-#[cfg(feature = "rosbag2")]
-mod poses;
+pub mod poses;
 #[cfg(feature = "rosbag2")]
 mod reader;
 #[cfg(feature = "rosbag2")]

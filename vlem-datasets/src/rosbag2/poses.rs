@@ -1,5 +1,5 @@
-//! Poses of a bag's frames: from a pose topic, or looked up in the tf tree of `/tf` and
-//! `/tf_static` along `[parent, child]`.
+//! Poses of a bag's (or a live node's) frames looked up in the tf tree of `/tf` and `/tf_static`
+//! along `[parent, child]`.
 //!
 //! Why its own module: tf is a tree of frames whose edges change over time at their own rates
 //! (odometry at 50 Hz, a static camera mount once). A frame's pose is the product of the edges
@@ -53,11 +53,39 @@ impl TfTree {
         }
     }
 
-    /// Sorts the moving edges by time; call once after the last [`TfTree::insert`].
+    /// Sorts the moving edges by time; call after the last [`TfTree::insert`] and before
+    /// [`TfTree::lookup`] (cheap when transforms arrived in order, as they do live).
     pub fn finish(&mut self) {
         for edge in self.edges.values_mut() {
-            edge.moving.sort_by(|a, b| a.0.total_cmp(&b.0));
+            if !edge.moving.is_sorted_by(|a, b| a.0 <= b.0) {
+                edge.moving.sort_by(|a, b| a.0.total_cmp(&b.0));
+            }
         }
+    }
+
+    /// Forgets moving transforms older than `time` but the last one before it, so a live tree
+    /// stays small and can still interpolate at `time`.
+    pub fn forget_before(&mut self, time: f64) {
+        for edge in self.edges.values_mut() {
+            let keep_from = edge
+                .moving
+                .partition_point(|(t, _)| *t < time)
+                .saturating_sub(1);
+            edge.moving.drain(..keep_from);
+        }
+    }
+
+    /// The newest time at which every moving edge of `chain` has a transform (the earliest of
+    /// their last stamps); `None` when an edge has none yet. Static-only chains: +infinity.
+    pub fn covered_until(&self, chain: &[String]) -> Option<f64> {
+        let mut until = f64::INFINITY;
+        for frame in &chain[..chain.len().saturating_sub(1)] {
+            let edge = self.edges.get(frame)?;
+            if edge.fixed.is_none() {
+                until = until.min(edge.moving.last()?.0);
+            }
+        }
+        Some(until)
     }
 
     /// The frames from `child` up to `parent` (both included).
@@ -173,6 +201,13 @@ mod tests {
             err.contains("no transform has child frame `lidar`"),
             "{err}"
         );
+        // Coverage: the moving edge ends at 11.0; forgetting keeps what interpolation needs.
+        assert_eq!(tree.covered_until(&chain), Some(11.0));
+        tree.forget_before(10.5);
+        assert!(tree.lookup(&chain, 10.5, 0.02).is_some());
+        tree.forget_before(11.5);
+        assert!(tree.lookup(&chain, 11.0, 0.02).is_some());
+        assert!(tree.lookup(&chain, 10.5, 0.02).is_none());
         // A second parent for a frame is counted and ignored.
         tree.insert("map", "base", 10.0, at(0.0, 0.0, 0.0), false);
         assert_eq!(tree.reparented, 1);
