@@ -291,3 +291,15 @@ fn doubtful_calibration_and_frames_are_warnings() {
     let source = open(&config, &bag("living-room-sqlite")).unwrap();
     assert_eq!(source.intrinsics().fx, 525.0);
 }
+
+/// A 5.6 kB MCAP file the fuzzer derived from a seed, whose corrupt lengths once made the reader
+/// ask for 3.7 GB: now a clean error.
+#[test]
+fn a_corrupt_mcap_file_is_an_error_not_an_allocation() {
+    let file = bag("fuzz-huge-read-request.mcap");
+    let err = match open(&raw("/raw/rgb8", "/raw/depth_16uc1"), &file) {
+        Ok(_) => panic!("the corrupt file opened"),
+        Err(e) => e.to_string(),
+    };
+    assert!(err.contains("cannot read MCAP"), "{err}");
+}
