@@ -85,9 +85,14 @@ pub fn execute(args: &Ros2Args) -> Result<()> {
         let json = serde_json::json!({
             "status": status,
             "run": report.run,
+            "error": report.error.as_ref().map(|e| vlem_core::message_chain(e)),
             "map_points": report.pipeline.live().status().map_len,
         });
         crate::output::write_atomically(path, serde_json::to_string_pretty(&json)?.as_bytes())?;
+    }
+    // After saving: the map up to a pipeline error is not lost with it.
+    if let Some(e) = report.error {
+        return Err(e.into());
     }
     Ok(())
 }

@@ -41,8 +41,12 @@ use crate::status::{Counter, Status, StatusReport};
 
 /// What a node run did.
 pub struct NodeReport {
-    /// The pipeline's run (`None` when no frame ever reached it: no camera info arrived).
+    /// The pipeline's run (`None` when no frame ever reached it, e.g. no camera info arrived,
+    /// or when it stopped on an error).
     pub run: Option<RunReport>,
+    /// The error the pipeline stopped on, if it did; the map up to it is kept in the pipeline's
+    /// live map, so the caller can still save it.
+    pub error: Option<CoreError>,
     /// The node's counters.
     pub status: StatusReport,
     /// The pipeline, back from its thread (its live map holds the map).
@@ -57,8 +61,9 @@ const IDLE: Duration = Duration::from_millis(5);
 ///
 /// # Errors
 /// [`Ros2Error::Config`] for settings that cannot work (including a `ground-truth` tracker
-/// without a pose topic), [`Ros2Error::Dds`] when the DDS participant or a topic cannot be
-/// created, and the pipeline's error if it stops on one.
+/// without a pose source), [`Ros2Error::Dds`] when the DDS participant or a topic cannot be
+/// created. A pipeline that stops on an error ends the node too, with the error in
+/// [`NodeReport::error`].
 pub fn run_node(
     pipeline: Pipeline,
     segmenter: Box<dyn Segmenter>,
@@ -179,16 +184,19 @@ pub fn run_node(
 
     drop(queries);
     let _ = query_thread.join();
-    let (run, pipeline) = match running {
+    let (run, error, pipeline) = match running {
         Some((sender, handle)) => {
             sender.finish();
             let outcome = handle
                 .join()
                 .map_err(|_| Ros2Error::Config("the pipeline thread panicked".into()))?;
-            (Some(outcome.report?), outcome.pipeline)
+            match outcome.report {
+                Ok(report) => (Some(report), None, outcome.pipeline),
+                Err(e) => (None, Some(e), outcome.pipeline),
+            }
         }
         None => match pipeline {
-            Some(p) => (None, p),
+            Some(p) => (None, None, p),
             None => return Err(Ros2Error::Config("the pipeline was lost".into())),
         },
     };
@@ -198,6 +206,7 @@ pub fn run_node(
     publish_map(&io, &live, settings, &status, &mut map_published_at);
     Ok(NodeReport {
         run,
+        error,
         status: status.report(),
         pipeline,
     })
