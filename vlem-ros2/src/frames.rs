@@ -8,7 +8,6 @@
 use std::collections::VecDeque;
 
 use vlem_core::{DepthImage, Frame, Intrinsics, Pose, RgbImage};
-use vlem_datasets::rosbag2::messages::{CompressedDepth, inverse_depth_to_metres};
 use vlem_datasets::rosbag2::poses::TfTree;
 
 use crate::msgs::{CameraInfo, CompressedImage, Image};
@@ -46,25 +45,11 @@ impl ImageMessage {
         let origin = std::path::Path::new("depth");
         match self {
             Self::Raw(m) => m.view().to_depth(scale),
-            Self::Compressed(m) => match m.view().depth()? {
-                CompressedDepth::Raw16(png) => {
-                    vlem_datasets::depth_from_bytes(png, scale, origin).map_err(|e| e.to_string())
-                }
-                CompressedDepth::InverseDepth {
-                    png,
-                    quant_a,
-                    quant_b,
-                } => {
-                    let raw = vlem_datasets::depth_from_bytes(png, 1.0, origin)
-                        .map_err(|e| e.to_string())?;
-                    let metres = raw
-                        .as_raw()
-                        .iter()
-                        .map(|&v| inverse_depth_to_metres(v as u16, quant_a, quant_b))
-                        .collect();
-                    DepthImage::new(raw.width(), raw.height(), metres).map_err(|e| e.to_string())
-                }
-            },
+            Self::Compressed(m) => m
+                .view()
+                .depth_image(scale, origin)
+                .map(|(depth, _)| depth)
+                .map_err(|e| e.to_string()),
         }
     }
 }

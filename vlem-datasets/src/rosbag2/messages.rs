@@ -328,6 +328,49 @@ impl<'a> CompressedImage<'a> {
     }
 }
 
+impl CompressedImage<'_> {
+    /// The depth image in metres, decoded, and whether it came in raw units (`scale` per metre;
+    /// the caller may check that scale) rather than in metres. `origin` is what errors name.
+    ///
+    /// # Errors
+    /// [`crate::DatasetError::UnsupportedImage`] for a format [`CompressedImage::depth`] refuses,
+    /// and the errors of [`crate::depth_from_bytes`].
+    pub fn depth_image(
+        &self,
+        scale: f32,
+        origin: &std::path::Path,
+    ) -> crate::Result<(DepthImage, bool)> {
+        let unsupported = |reason| crate::DatasetError::UnsupportedImage {
+            path: origin.to_path_buf(),
+            reason,
+        };
+        match self.depth().map_err(unsupported)? {
+            CompressedDepth::Raw16(png) => Ok((crate::depth_from_bytes(png, scale, origin)?, true)),
+            CompressedDepth::InverseDepth {
+                png,
+                quant_a,
+                quant_b,
+            } => {
+                // Scale 1: the raw 16-bit values, exactly (they fit an f32).
+                let raw = crate::depth_from_bytes(png, 1.0, origin)?;
+                let metres = raw
+                    .as_raw()
+                    .iter()
+                    .map(|&v| inverse_depth_to_metres(v as u16, quant_a, quant_b))
+                    .collect();
+                let depth =
+                    DepthImage::new(raw.width(), raw.height(), metres).map_err(|source| {
+                        crate::DatasetError::Core {
+                            path: origin.to_path_buf(),
+                            source,
+                        }
+                    })?;
+                Ok((depth, false))
+            }
+        }
+    }
+}
+
 /// Metres from one value of a `32FC1; compressedDepth` PNG (0 = no measurement).
 pub fn inverse_depth_to_metres(value: u16, quant_a: f32, quant_b: f32) -> f32 {
     if value == 0 {

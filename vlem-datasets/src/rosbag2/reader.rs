@@ -6,16 +6,15 @@ use std::path::{Path, PathBuf};
 use vlem_core::config::{DatasetConfig, Rosbag2Config};
 use vlem_core::{Frame, FrameSource, Intrinsics, Pose};
 
+use crate::colour_from_bytes;
 use crate::depth_check::check_depth_scale;
 use crate::error::{DatasetError, Result};
 use crate::sequence::{Selection, depth_scale};
 use crate::tum::{associate, pose_at};
-use crate::{colour_from_bytes, depth_from_bytes};
 
 use super::messages::{
-    CAMERA_INFO, COMPRESSED_IMAGE, CameraInfo, CompressedDepth, CompressedImage, IMAGE, Image,
-    ODOMETRY, POSE_STAMPED, StampedPose, TF_MESSAGE, decode_tf_message, header_of,
-    inverse_depth_to_metres, normalise_type,
+    CAMERA_INFO, COMPRESSED_IMAGE, CameraInfo, CompressedImage, IMAGE, Image, ODOMETRY,
+    POSE_STAMPED, StampedPose, TF_MESSAGE, decode_tf_message, header_of, normalise_type,
 };
 use super::poses::TfTree;
 use super::storage::{Bag, MessageKey, TopicInfo};
@@ -337,31 +336,7 @@ impl Rosbag2Reader {
             ImageType::Compressed => {
                 let message =
                     CompressedImage::decode(&data[1]).map_err(|e| cdr_error(&depth_origin, e))?;
-                match message.depth().map_err(|r| unsupported(&depth_origin, r))? {
-                    CompressedDepth::Raw16(png) => (
-                        depth_from_bytes(png, self.depth_scale, &depth_origin)?,
-                        true,
-                    ),
-                    CompressedDepth::InverseDepth {
-                        png,
-                        quant_a,
-                        quant_b,
-                    } => {
-                        // Scale 1: the raw 16-bit values, exactly (they fit an f32).
-                        let raw = depth_from_bytes(png, 1.0, &depth_origin)?;
-                        let metres = raw
-                            .as_raw()
-                            .iter()
-                            .map(|&v| inverse_depth_to_metres(v as u16, quant_a, quant_b))
-                            .collect();
-                        let depth = vlem_core::DepthImage::new(raw.width(), raw.height(), metres)
-                            .map_err(|source| DatasetError::Core {
-                            path: depth_origin.clone(),
-                            source,
-                        })?;
-                        (depth, false)
-                    }
-                }
+                message.depth_image(self.depth_scale, &depth_origin)?
             }
         };
         if scaled {
