@@ -190,87 +190,99 @@ struct Step {
     inliers: usize,
 }
 
-/// Residual rows one chunk of source points can produce (two per point for hybrid).
-const ROWS: usize = 2 * CHUNK;
+/// Products a residual row adds to the normal equations: JᵀWJ's upper triangle (21), JᵀWr (6)
+/// and Σ w r² (1), i.e. the upper triangle of the 7×7 outer product of `(√w·J, √w·r)`.
+const PRODUCTS: usize = 28;
 
-/// The weighted residual rows of one chunk of pixels, column by column: `√w·J` (6 columns) and
-/// `√w·r`. The normal equations are then 28 dot products over contiguous columns, which
-/// vectorise, instead of a scalar 6×6 update per residual.
+/// The normal equations of one chunk of source points, summed in f32 lane by lane.
+///
+/// Residual rows come in groups of [`LANES`] (one row per lane, as `√w·J` and `√w·r`), and
+/// each group adds its 28 products to 28 lane-wise sums: an update the compiler vectorises,
+/// where one row at a time would be a scalar 6×6 update. The accumulators fit in the L1 cache,
+/// so rows are never written out. Rows added one at a time ([`ChunkSums::add`]) are staged
+/// until they fill a group.
 struct ChunkSums {
-    columns: Box<[[f32; ROWS]; 7]>,
-    rows: usize,
+    sums: [[f32; LANES]; PRODUCTS],
+    staged: [[f32; LANES]; 7],
+    staged_rows: usize,
     inliers: usize,
 }
 
 impl ChunkSums {
     fn new() -> Self {
         Self {
-            columns: Box::new([[0.0; ROWS]; 7]),
-            rows: 0,
+            sums: [[0.0; LANES]; PRODUCTS],
+            staged: [[0.0; LANES]; 7],
+            staged_rows: 0,
             inliers: 0,
         }
     }
 
-    /// Adds residual `r` with Jacobian row `j` and its Huber weight; rows beyond the buffer
-    /// (impossible with chunks of at most [`CHUNK`] points) are dropped.
+    /// Adds residual `r` with Jacobian row `j`, weighted by its Huber weight.
     #[inline(always)]
     fn add(&mut self, j: &[f32; 6], r: f32, huber_delta: f32) {
-        let n = self.rows;
-        if n >= ROWS {
-            return;
+        let s = huber_sqrt_weight(r, huber_delta);
+        let k = self.staged_rows % LANES;
+        for (column, x) in self.staged.iter_mut().zip(j) {
+            column[k] = s * x;
         }
-        let abs = r.abs();
-        // √w of the Huber weight w = min(1, δ/|r|).
-        let s = if abs <= huber_delta {
-            1.0
-        } else {
-            (huber_delta / abs).sqrt()
-        };
-        for (column, x) in self.columns.iter_mut().zip(j) {
-            column[n] = s * x;
+        self.staged[6][k] = s * r;
+        self.staged_rows = k + 1;
+        if self.staged_rows == LANES {
+            let group = self.staged;
+            self.add_group(&group);
+            self.staged_rows = 0;
         }
-        self.columns[6][n] = s * r;
-        self.rows = n + 1;
     }
 
-    /// The chunk's normal equations.
-    fn normal_equations(&self) -> Step {
+    /// Adds [`LANES`] weighted rows, given column by column: `rows[0..6]` hold `√w·J`, `rows[6]`
+    /// holds `√w·r`. All-zero lanes add nothing.
+    #[inline(always)]
+    fn add_group(&mut self, rows: &[[f32; LANES]; 7]) {
+        let mut i = 0;
+        for r in 0..7 {
+            for c in r..7 {
+                let sums = &mut self.sums[i % PRODUCTS];
+                for l in 0..LANES {
+                    sums[l] += rows[r][l] * rows[c][l];
+                }
+                i += 1;
+            }
+        }
+    }
+
+    /// The chunk's normal equations (a partly staged group is padded with zero rows).
+    fn normal_equations(mut self) -> Step {
+        if self.staged_rows > 0 {
+            for column in &mut self.staged {
+                column[self.staged_rows..].fill(0.0);
+            }
+            let group = self.staged;
+            self.add_group(&group);
+        }
         let mut step = Step {
             inliers: self.inliers,
             ..Step::default()
         };
-        let n = self.rows;
-        let c = |k: usize| &self.columns[k][..n];
-        let mut i = 0;
-        for row in 0..6 {
-            for col in row..6 {
-                step.h[i] = f64::from(dot(c(row), c(col)));
-                i += 1;
+        let mut products = self
+            .sums
+            .iter()
+            .map(|lanes| lanes.iter().map(|&x| f64::from(x)).sum::<f64>());
+        let mut h = step.h.iter_mut();
+        for r in 0..7 {
+            for c in r..7 {
+                let sum = products.next().unwrap_or(0.0);
+                if r == 6 {
+                    step.squared = sum;
+                } else if c == 6 {
+                    step.b[r] = sum;
+                } else if let Some(h) = h.next() {
+                    *h = sum;
+                }
             }
-            step.b[row] = f64::from(dot(c(row), c(6)));
         }
-        step.squared = f64::from(dot(c(6), c(6)));
         step
     }
-}
-
-/// Dot product with eight independent partial sums, so the compiler can vectorise it.
-#[inline]
-fn dot(a: &[f32], b: &[f32]) -> f32 {
-    let mut lanes = [0.0f32; 8];
-    let (a8, b8) = (a.chunks_exact(8), b.chunks_exact(8));
-    let tail: f32 = a8
-        .remainder()
-        .iter()
-        .zip(b8.remainder())
-        .map(|(x, y)| x * y)
-        .sum();
-    for (x, y) in a8.zip(b8) {
-        for l in 0..8 {
-            lanes[l] += x[l] * y[l];
-        }
-    }
-    lanes.iter().sum::<f32>() + tail
 }
 
 impl Step {
@@ -317,25 +329,26 @@ fn linearise(
     transform: &Isometry3<f64>,
     params: &OdometryConfig,
 ) -> Step {
-    let ctx = Association {
-        transform: RigidF32::from_pose(transform),
-        target,
-        trunc: params.depth_outlier_trunc,
-        depth_huber: params.depth_huber_delta * SQRT_HALF,
-        intensity_huber: params.intensity_huber_delta * SQRT_HALF,
-    };
-    let accumulate: fn(&Association<'_>, &[SourcePoint], &mut ChunkSums) = match params.method {
+    let ctx = Association::new(target, transform, params);
+    let accumulate: Accumulate = match params.method {
         Method::Hybrid => accumulate_hybrid,
         Method::Intensity => accumulate_intensity,
         Method::PointToPlane => accumulate_point_to_plane,
     };
+    linearise_with(source, &ctx, accumulate)
+}
+
+/// Adds the residual rows of a chunk of source points.
+type Accumulate = fn(&Association<'_>, &[SourcePoint], &mut ChunkSums);
+
+/// Sums the normal equations of `accumulate`'s rows over all source points, chunks in parallel.
+fn linearise_with(source: &Level, ctx: &Association<'_>, accumulate: Accumulate) -> Step {
     source
         .source
         .par_chunks(CHUNK)
-        .map_init(ChunkSums::new, |sums, chunk| {
-            sums.rows = 0;
-            sums.inliers = 0;
-            accumulate(&ctx, chunk, sums);
+        .map(|chunk| {
+            let mut sums = ChunkSums::new();
+            accumulate(ctx, chunk, &mut sums);
             sums.normal_equations()
         })
         .reduce(Step::default, Step::merge)
@@ -351,7 +364,17 @@ struct Association<'a> {
     intensity_huber: f32,
 }
 
-impl Association<'_> {
+impl<'a> Association<'a> {
+    fn new(target: &'a Level, transform: &Isometry3<f64>, params: &OdometryConfig) -> Self {
+        Self {
+            transform: RigidF32::from_pose(transform),
+            target,
+            trunc: params.depth_outlier_trunc,
+            depth_huber: params.depth_huber_delta * SQRT_HALF,
+            intensity_huber: params.intensity_huber_delta * SQRT_HALF,
+        }
+    }
+
     /// The moved point and its continuous pixel coordinates in the target.
     #[inline]
     fn project(&self, p: &[f32; 3]) -> Option<([f32; 3], f32, f32)> {
@@ -470,7 +493,176 @@ fn image_jacobian(gx: f32, gy: f32, q: &[f32; 3], fx: f32, fy: f32) -> [f32; 6] 
     ]
 }
 
+/// Source points the hybrid accumulation handles side by side.
+const LANES: usize = 8;
+
+/// The hybrid residual rows of one chunk, [`LANES`] source points at a time.
+///
+/// Each step of the per-point work runs over all lanes in a branch-free loop that the compiler
+/// vectorises; only the target lookups are scalar. A lane that fails a test (outside the image,
+/// an outlier, an unknown slope, or padding past the chunk's end) keeps computing and is zeroed
+/// at the end. Its rows are then exact zeros, which add nothing to the normal equations. It gives
+/// the same sums as one point at a time, up to the order of addition (tested against that
+/// version).
 fn accumulate_hybrid(ctx: &Association<'_>, points: &[SourcePoint], step: &mut ChunkSums) {
+    let target = ctx.target;
+    let cam = target.camera;
+    let r = &ctx.transform.rotation;
+    let t = &ctx.transform.translation;
+    let w = target.width;
+    let (u_max, v_max) = ((w - 1) as f32, (target.height - 1) as f32);
+    for group in points.chunks(LANES) {
+        // Padding lanes: a point behind the camera fails the first test.
+        let mut p = [[0.0; LANES]; 3];
+        let mut source_intensity = [0.0; LANES];
+        p[2] = [-1.0; LANES];
+        for (l, s) in group.iter().enumerate() {
+            for a in 0..3 {
+                p[a][l] = s.point[a];
+            }
+            source_intensity[l] = s.intensity;
+        }
+        let mut q = [[0.0; LANES]; 3];
+        for (a, qa) in q.iter_mut().enumerate() {
+            for l in 0..LANES {
+                qa[l] = r[a][0] * p[0][l] + r[a][1] * p[1][l] + r[a][2] * p[2][l] + t[a];
+            }
+        }
+        let mut inv_z = [0.0; LANES];
+        let mut u = [0.0; LANES];
+        let mut v = [0.0; LANES];
+        let mut ok = [false; LANES];
+        for l in 0..LANES {
+            inv_z[l] = 1.0 / q[2][l];
+            let (ul, vl) = (
+                cam.fx * q[0][l] * inv_z[l] + cam.cx,
+                cam.fy * q[1][l] * inv_z[l] + cam.cy,
+            );
+            // NaN and points behind the camera fail too.
+            ok[l] = q[2][l] > 0.0 && ul >= 0.0 && vl >= 0.0 && ul < u_max && vl < v_max;
+            // Failed lanes look up pixel 0, so every lookup stays in bounds.
+            u[l] = if ok[l] { ul } else { 0.0 };
+            v[l] = if ok[l] { vl } else { 0.0 };
+        }
+        let mut fu = [0.0; LANES];
+        let mut fv = [0.0; LANES];
+        let mut index = [0_usize; LANES];
+        for l in 0..LANES {
+            // Non-negative here, so truncation is the floor; via i32, which is cheaper.
+            let (u0, v0) = (u[l] as i32, v[l] as i32);
+            fu[l] = u[l] - u0 as f32;
+            fv[l] = v[l] - v0 as f32;
+            index[l] = v0 as usize * w + u0 as usize;
+        }
+        // The four corners' depth and intensity, and the slopes of the nearest corner
+        // (values are interpolated so the residual varies smoothly; slopes only steer).
+        let mut corner_depth = [[0.0; LANES]; 4];
+        let mut corner_intensity = [[0.0; LANES]; 4];
+        let mut slopes = [[0.0; LANES]; 4];
+        for l in 0..LANES {
+            let i = index[l];
+            let corners = [i, i + 1, i + w, i + w + 1];
+            let nearest = usize::from(fu[l] >= 0.5) + 2 * usize::from(fv[l] >= 0.5);
+            for (c, &at) in corners.iter().enumerate() {
+                let Some(pixel) = target.target.get(at) else {
+                    ok[l] = false;
+                    continue;
+                };
+                corner_depth[c][l] = pixel.depth;
+                corner_intensity[c][l] = pixel.intensity;
+                if c == nearest {
+                    slopes[0][l] = pixel.depth_dx;
+                    slopes[1][l] = pixel.depth_dy;
+                    slopes[2][l] = pixel.intensity_dx;
+                    slopes[3][l] = pixel.intensity_dy;
+                }
+            }
+        }
+        let mut depth = [0.0; LANES];
+        let mut intensity = [0.0; LANES];
+        for l in 0..LANES {
+            let qz = q[2][l];
+            // Any corner without depth within the outlier threshold (NaN fails) makes an
+            // outlier; a depth slope next to a hole or across an edge is NaN.
+            let mut near = (slopes[0][l] + slopes[1][l]).is_finite();
+            for corner in &corner_depth {
+                near &= (corner[l] - qz).abs() <= ctx.trunc;
+            }
+            ok[l] &= near;
+            let (a, b) = (fu[l], fv[l]);
+            let weights = [(1.0 - a) * (1.0 - b), a * (1.0 - b), (1.0 - a) * b, a * b];
+            let mut d = 0.0;
+            let mut i = 0.0;
+            for c in 0..4 {
+                d += weights[c] * corner_depth[c][l];
+                i += weights[c] * corner_intensity[c][l];
+            }
+            depth[l] = d;
+            intensity[l] = i;
+        }
+        // Both rows carry the √λ = √½ weight, folded into slopes and residuals.
+        let mut rows = [[[0.0; LANES]; 7]; 2];
+        for l in 0..LANES {
+            let q_l = [q[0][l], q[1][l], q[2][l]];
+            let mut j_d = image_jacobian(
+                SQRT_HALF * slopes[0][l],
+                SQRT_HALF * slopes[1][l],
+                &q_l,
+                cam.fx,
+                cam.fy,
+            );
+            // The depth residual also moves with the point's own z:
+            // ∂q_z/∂ξ = (q_y, −q_x, 0, 0, 0, 1).
+            j_d[0] -= SQRT_HALF * q_l[1];
+            j_d[1] += SQRT_HALF * q_l[0];
+            j_d[5] -= SQRT_HALF;
+            let j_i = image_jacobian(
+                SQRT_HALF * slopes[2][l],
+                SQRT_HALF * slopes[3][l],
+                &q_l,
+                cam.fx,
+                cam.fy,
+            );
+            let r_i = SQRT_HALF * (intensity[l] - source_intensity[l]);
+            let r_d = SQRT_HALF * (depth[l] - q_l[2]);
+            let s_i = if ok[l] {
+                huber_sqrt_weight(r_i, ctx.intensity_huber)
+            } else {
+                0.0
+            };
+            let s_d = if ok[l] {
+                huber_sqrt_weight(r_d, ctx.depth_huber)
+            } else {
+                0.0
+            };
+            // Selected rather than multiplied: a failed lane may hold NaN, and 0 · NaN is NaN.
+            for k in 0..6 {
+                rows[0][k][l] = if ok[l] { s_i * j_i[k] } else { 0.0 };
+                rows[1][k][l] = if ok[l] { s_d * j_d[k] } else { 0.0 };
+            }
+            rows[0][6][l] = if ok[l] { s_i * r_i } else { 0.0 };
+            rows[1][6][l] = if ok[l] { s_d * r_d } else { 0.0 };
+        }
+        step.add_group(&rows[0]);
+        step.add_group(&rows[1]);
+        step.inliers += ok.iter().filter(|&&ok| ok).count();
+    }
+}
+
+/// `√w` of the Huber weight `w = min(1, δ/|r|)`, branch-free (`r = 0` gives 1).
+#[inline(always)]
+fn huber_sqrt_weight(r: f32, delta: f32) -> f32 {
+    (delta / r.abs()).sqrt().min(1.0)
+}
+
+/// The point-at-a-time hybrid accumulation that [`accumulate_hybrid`] replaced, kept as the
+/// reference its lanes are tested against.
+#[cfg(test)]
+fn accumulate_hybrid_pointwise(
+    ctx: &Association<'_>,
+    points: &[SourcePoint],
+    step: &mut ChunkSums,
+) {
     let cam = ctx.target.camera;
     for s in points {
         let Some(Bilinear {
@@ -561,5 +753,66 @@ fn accumulate_point_to_plane(ctx: &Association<'_>, points: &[SourcePoint], step
         ];
         step.add(&j, r, huber);
         step.inliers += 1;
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    #![allow(clippy::unwrap_used, reason = "test")]
+
+    use std::path::Path;
+
+    use nalgebra::{Translation3, UnitQuaternion};
+    use vlem_core::config::DatasetConfig;
+
+    use super::*;
+
+    /// The lanes give the point-at-a-time normal equations: the same inliers, and sums equal up
+    /// to f32 rounding in the order of addition. Motions up to several centimetres push points
+    /// off the image and onto depth edges, so every rejection path is taken; level sizes are not
+    /// multiples of the lane count, so padding lanes are too.
+    #[test]
+    fn hybrid_lanes_match_pointwise() {
+        let dir = Path::new(env!("CARGO_MANIFEST_DIR")).join("../data/living-room");
+        let mut frames = vlem_datasets::open(&DatasetConfig::default(), &dir).unwrap();
+        let config = OdometryConfig::default();
+        let params = config.pyramid_params();
+        let mut build = |i: usize| {
+            let f = frames.frame(i).unwrap();
+            Pyramid::build(&f.colour, &f.depth, &f.intrinsics, &params)
+        };
+        let (source, target) = (build(3), build(0));
+        let motions = [
+            Isometry3::identity(),
+            Isometry3::from_parts(
+                Translation3::new(0.01, -0.005, 0.008),
+                UnitQuaternion::from_euler_angles(0.01, -0.015, 0.005),
+            ),
+            Isometry3::from_parts(
+                Translation3::new(-0.06, 0.04, 0.05),
+                UnitQuaternion::from_euler_angles(-0.05, 0.04, 0.03),
+            ),
+        ];
+        for motion in &motions {
+            for (level, (src, tgt)) in source.levels.iter().zip(&target.levels).enumerate() {
+                assert_ne!(src.source.len() % LANES, 0, "level {level} has no padding lanes");
+                let ctx = Association::new(tgt, motion, &config);
+                let lanes = linearise_with(src, &ctx, accumulate_hybrid);
+                let pointwise = linearise_with(src, &ctx, accumulate_hybrid_pointwise);
+                assert!(pointwise.inliers > 1000, "level {level}: {}", pointwise.inliers);
+                assert!(pointwise.inliers < src.source.len(), "level {level}: no outliers");
+                assert_eq!(lanes.inliers, pointwise.inliers, "level {level}");
+                let scale = pointwise.h.iter().fold(0.0_f64, |m, x| m.max(x.abs()));
+                for (a, b) in lanes.h.iter().zip(&pointwise.h) {
+                    assert!((a - b).abs() <= 1e-5 * scale, "level {level}: H {a} vs {b}");
+                }
+                let scale = pointwise.b.iter().fold(0.0_f64, |m, x| m.max(x.abs()));
+                for (a, b) in lanes.b.iter().zip(&pointwise.b) {
+                    assert!((a - b).abs() <= 1e-5 * scale, "level {level}: b {a} vs {b}");
+                }
+                let relative = (lanes.squared - pointwise.squared).abs() / pointwise.squared;
+                assert!(relative <= 1e-5, "level {level}: squared residual off by {relative}");
+            }
+        }
     }
 }
