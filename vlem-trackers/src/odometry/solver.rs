@@ -445,19 +445,15 @@ impl<'a> Association<'a> {
             (false, true) => c01,
             (true, true) => c11,
         };
-        let (w00, w10, w01, w11) = (
-            (1.0 - fu) * (1.0 - fv),
-            fu * (1.0 - fv),
-            (1.0 - fu) * fv,
-            fu * fv,
-        );
         Some(Bilinear {
             q: [qx, qy, qz],
-            depth: w00 * c00.depth + w10 * c10.depth + w01 * c01.depth + w11 * c11.depth,
-            intensity: w00 * c00.intensity
-                + w10 * c10.intensity
-                + w01 * c01.intensity
-                + w11 * c11.intensity,
+            corners: [c00, c10, c01, c11],
+            weights: [
+                (1.0 - fu) * (1.0 - fv),
+                fu * (1.0 - fv),
+                (1.0 - fu) * fv,
+                fu * fv,
+            ],
             nearest,
         })
     }
@@ -467,12 +463,30 @@ impl<'a> Association<'a> {
 struct Bilinear<'a> {
     /// The moved point (target camera frame).
     q: [f32; 3],
-    /// Interpolated target depth.
-    depth: f32,
-    /// Interpolated target intensity.
-    intensity: f32,
+    /// The four target pixels around the projection and their bilinear weights.
+    corners: [&'a TargetPixel; 4],
+    weights: [f32; 4],
     /// The nearest of the four corners, whose slopes the Jacobians use.
     nearest: &'a TargetPixel,
+}
+
+impl Bilinear<'_> {
+    fn interpolate(&self, value: impl Fn(&TargetPixel) -> f32) -> f32 {
+        let [c00, c10, c01, c11] = self.corners;
+        let [w00, w10, w01, w11] = self.weights;
+        w00 * value(c00) + w10 * value(c10) + w01 * value(c01) + w11 * value(c11)
+    }
+
+    /// Interpolated target intensity.
+    fn intensity(&self) -> f32 {
+        self.interpolate(|c| c.intensity)
+    }
+
+    /// Interpolated target depth.
+    #[cfg(test)]
+    fn depth(&self) -> f32 {
+        self.interpolate(|c| c.depth)
+    }
 }
 
 /// d(pixel-space image derivative)/dξ for an image with per-pixel slopes `(gx, gy)` at the
@@ -665,15 +679,11 @@ fn accumulate_hybrid_pointwise(
 ) {
     let cam = ctx.target.camera;
     for s in points {
-        let Some(Bilinear {
-            q,
-            depth,
-            intensity,
-            nearest,
-        }) = ctx.associate_bilinear(&s.point)
-        else {
+        let Some(sample) = ctx.associate_bilinear(&s.point) else {
             continue;
         };
+        let (q, nearest) = (sample.q, sample.nearest);
+        let (depth, intensity) = (sample.depth(), sample.intensity());
         // A depth slope next to a hole or across an edge is NaN.
         if !(nearest.depth_dx + nearest.depth_dy).is_finite() {
             continue;
@@ -716,7 +726,7 @@ fn accumulate_intensity(ctx: &Association<'_>, points: &[SourcePoint], step: &mu
         };
         let n = sample.nearest;
         let j = image_jacobian(n.intensity_dx, n.intensity_dy, &sample.q, cam.fx, cam.fy);
-        step.add(&j, sample.intensity - s.intensity, huber);
+        step.add(&j, sample.intensity() - s.intensity, huber);
         step.inliers += 1;
     }
 }
