@@ -1,7 +1,8 @@
 //! Dense tracking timing on the committed living-room frames (640×480):
 //! `cargo bench -p vlem-trackers --bench odometry`. Prints milliseconds per frame for preparing
 //! the pyramid and for registering consecutive frames, per method, then for both trackers end to
-//! end. `RAYON_NUM_THREADS` sets the thread count.
+//! end. `RAYON_NUM_THREADS` sets the thread count; `VLEM_BENCH_SEQUENCE=DIR` times another
+//! RGB-D folder (all its frames are loaded first, so loading is not timed).
 #![allow(clippy::unwrap_used, clippy::expect_used, reason = "bench binary")]
 
 use std::path::Path;
@@ -14,7 +15,10 @@ use vlem_trackers::frame_to_model::{FrameToModelConfig, FrameToModelTracker};
 use vlem_trackers::odometry::{Method, OdometryConfig, OdometryTracker, Pyramid, register};
 
 fn main() {
-    let dir = Path::new(env!("CARGO_MANIFEST_DIR")).join("../data/living-room");
+    let dir = std::env::var_os("VLEM_BENCH_SEQUENCE").map_or_else(
+        || Path::new(env!("CARGO_MANIFEST_DIR")).join("../data/living-room"),
+        std::path::PathBuf::from,
+    );
     let mut source = vlem_datasets::open(&DatasetConfig::default(), &dir).unwrap();
     let frames: Vec<_> = (0..source.len())
         .map(|i| source.frame(i).unwrap())

@@ -1,9 +1,10 @@
 //! Timing of the TSDF volume on the committed ICL-NUIM living-room frames (640x480), at the
 //! dataset poses: `cargo bench -p vlem-trackers --bench tsdf`.
 //!
-//! Prints milliseconds per call of `integrate`, `raycast` (at the pose just integrated, as
-//! frame-to-model tracking does), `extract_mesh` and `extract_points`, with the block count and
-//! memory of the final volume.
+//! Prints milliseconds per call of `integrate`, `raycast` (at the pose just integrated),
+//! `raycast_near_depth` (the same cast with rays starting near the depth just fused, as
+//! frame-to-model tracking casts), `extract_mesh` and `extract_points`, with the block count and
+//! memory of the final volume, and how often the two casts agree.
 #![allow(clippy::unwrap_used, clippy::expect_used, reason = "benchmark binary")]
 
 use std::path::Path;
@@ -85,7 +86,12 @@ fn main() {
     let mut integrate = Timer::default();
     let mut raycast = Timer::default();
     let mut raycast_normals = Timer::default();
+    let mut raycast_near = Timer::default();
     let mut hits = 0.0;
+    // Pixels where both casts hit, their depths within 0.1 mm / exactly equal, and pixels
+    // where only one hits.
+    let (mut both, mut close, mut equal, mut one) = (0_usize, 0_usize, 0_usize, 0_usize);
+    let mut differences: Vec<f32> = Vec::new();
     let mut volume = TsdfVolume::new(TsdfConfig::default()).expect("config");
     for round in 0..rounds {
         volume = TsdfVolume::new(TsdfConfig::default()).expect("config");
@@ -94,6 +100,23 @@ fn main() {
             integrate.time(|| volume.integrate(&frame.depth, &frame.colour, &k, &pose));
             let cast = raycast.time(|| volume.raycast(&k, &pose));
             hits += cast.hit_count() as f64 / (k.width * k.height) as f64;
+            let options = RaycastOptions::default();
+            let near =
+                raycast_near.time(|| volume.raycast_near_depth(&k, &pose, &options, &frame.depth));
+            if round == 0 {
+                for (a, b) in cast.depth.as_raw().iter().zip(near.depth.as_raw()) {
+                    match (*a > 0.0, *b > 0.0) {
+                        (true, true) => {
+                            both += 1;
+                            close += usize::from((a - b).abs() <= 1e-4);
+                            equal += usize::from(a == b);
+                            differences.push((a - b).abs());
+                        }
+                        (false, false) => {}
+                        _ => one += 1,
+                    }
+                }
+            }
             if round == 0 {
                 let options = RaycastOptions {
                     normals: true,
@@ -107,6 +130,24 @@ fn main() {
     integrate.print("integrate");
     raycast.print("raycast (depth + colour)");
     raycast_normals.print("raycast (+ normals)");
+    raycast_near.print("raycast_near_depth");
+    differences.sort_by(f32::total_cmp);
+    let quantile = |q: f64| 1e3 * differences[((differences.len() - 1) as f64 * q) as usize];
+    println!(
+        "raycast_near_depth against raycast, depth difference where both hit: median {:.3} mm, \
+         99th percentile {:.3} mm, 99.9th {:.3} mm, largest {:.1} mm",
+        quantile(0.5),
+        quantile(0.99),
+        quantile(0.999),
+        quantile(1.0)
+    );
+    println!(
+        "raycast_near_depth against raycast: {:.3} % of the hits equal, {:.3} % within 0.1 mm, \
+         {:.3} % of the pixels hit by one cast only",
+        100.0 * equal as f64 / both as f64,
+        100.0 * close as f64 / both as f64,
+        100.0 * one as f64 / (frames.len() * (k.width * k.height) as usize) as f64,
+    );
     println!(
         "raycast hit rate {:.1} %",
         100.0 * hits / (rounds * frames.len()) as f64

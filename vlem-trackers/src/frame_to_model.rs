@@ -30,7 +30,7 @@ use vlem_core::{
 
 use crate::error::TrackerError;
 use crate::odometry::{OdometryConfig, Pyramid, PyramidParams, initial_pose, lost, tracking};
-use crate::tsdf::{TsdfConfig, TsdfVolume};
+use crate::tsdf::{RaycastOptions, TsdfConfig, TsdfVolume};
 
 /// The registered name.
 pub const NAME: &str = "frame-to-model";
@@ -135,7 +135,13 @@ impl FrameToModelTracker {
     fn integrate_and_cast(&mut self, frame: &Frame, pose: Pose) {
         self.volume
             .integrate(&frame.depth, &frame.colour, &frame.intrinsics, &pose);
-        let cast = self.volume.raycast(&frame.intrinsics, &pose);
+        // Cast from the pose just fused, so rays may start near the depth just measured.
+        let cast = self.volume.raycast_near_depth(
+            &frame.intrinsics,
+            &pose,
+            &RaycastOptions::default(),
+            &frame.depth,
+        );
         // The previous model's pyramid is rebuilt in place: fresh 15 MB buffers every frame cost
         // as much in page faults as the arithmetic.
         let mut pyramid = self

@@ -805,12 +805,23 @@ mod tests {
         ];
         for motion in &motions {
             for (level, (src, tgt)) in source.levels.iter().zip(&target.levels).enumerate() {
-                assert_ne!(src.source.len() % LANES, 0, "level {level} has no padding lanes");
+                assert_ne!(
+                    src.source.len() % LANES,
+                    0,
+                    "level {level} has no padding lanes"
+                );
                 let ctx = Association::new(tgt, motion, &config);
                 let lanes = linearise_with(src, &ctx, accumulate_hybrid);
                 let pointwise = linearise_with(src, &ctx, accumulate_hybrid_pointwise);
-                assert!(pointwise.inliers > 1000, "level {level}: {}", pointwise.inliers);
-                assert!(pointwise.inliers < src.source.len(), "level {level}: no outliers");
+                assert!(
+                    pointwise.inliers > 1000,
+                    "level {level}: {}",
+                    pointwise.inliers
+                );
+                assert!(
+                    pointwise.inliers < src.source.len(),
+                    "level {level}: no outliers"
+                );
                 assert_eq!(lanes.inliers, pointwise.inliers, "level {level}");
                 let scale = pointwise.h.iter().fold(0.0_f64, |m, x| m.max(x.abs()));
                 for (a, b) in lanes.h.iter().zip(&pointwise.h) {
@@ -821,7 +832,10 @@ mod tests {
                     assert!((a - b).abs() <= 1e-5 * scale, "level {level}: b {a} vs {b}");
                 }
                 let relative = (lanes.squared - pointwise.squared).abs() / pointwise.squared;
-                assert!(relative <= 1e-5, "level {level}: squared residual off by {relative}");
+                assert!(
+                    relative <= 1e-5,
+                    "level {level}: squared residual off by {relative}"
+                );
             }
         }
     }

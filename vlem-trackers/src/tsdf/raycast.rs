@@ -547,10 +547,12 @@ struct March<'a> {
 }
 
 impl<'a> March<'a> {
-    /// The march of pixel `(u, v)`, if its tile has anything to meet.
-    fn new(ctx: &CastContext, ranges: &RangeMap, u: usize, v: usize) -> Option<Self> {
+    /// The march of pixel `(u, v)` from camera depth `start` or later, if its tile has
+    /// anything to meet.
+    fn new(ctx: &CastContext, ranges: &RangeMap, u: usize, v: usize, start: f32) -> Option<Self> {
         let tile = (v / TILE) * ranges.tiles_x + u / TILE;
-        let z_start = ranges.min.get(tile)?.max(ctx.z_near);
+        // NaN starts are ignored by `max`.
+        let z_start = ranges.min.get(tile)?.max(ctx.z_near).max(start);
         let z_end = ranges.max.get(tile)?.min(ctx.z_far);
         // Empty tiles have an infinite start and a negative infinite end.
         if z_start > z_end {
@@ -828,6 +830,53 @@ impl TsdfVolume {
         camera_to_world: &Pose,
         options: &RaycastOptions,
     ) -> RaycastImage {
+        self.cast(k, camera_to_world, options, None)
+    }
+
+    /// [`TsdfVolume::raycast_with`] from the pose at which `depth` (taken through `k`) was just
+    /// fused, as frame-to-model tracking casts its model: each ray starts shortly before the
+    /// nearest depth measured in its 3×3 pixel neighbourhood (the truncation distance and two
+    /// voxels before it) rather than before the nearest block in its tile, which saves most
+    /// of the march. Pixels with no depth in range around them march as in `raycast_with`.
+    ///
+    /// It differs from `raycast_with` only where the volume holds a surface in front of that
+    /// start: a surface this frame saw as free space, which one observation does not yet
+    /// outweigh (something that moved away). There the ray meets the surface measured now.
+    /// Elsewhere the two marches only sample at other depths, so the refined crossing moves
+    /// a little: on the committed living-room frames (`cargo bench -p vlem-trackers --bench
+    /// tsdf`) the median depth difference is 0.002 mm and 85 % of the hits are within 0.1 mm.
+    /// The 1 % beyond 6 mm lie on occluding edges, where a march may step over the thin
+    /// sliver of the nearer surface or land on it (either cast, either way); 0.3 % of the
+    /// pixels are hit by one cast only.
+    ///
+    /// A `depth` of another size than `k` is ignored (every ray marches as in `raycast_with`).
+    pub fn raycast_near_depth(
+        &self,
+        k: &Intrinsics,
+        camera_to_world: &Pose,
+        options: &RaycastOptions,
+        depth: &DepthImage,
+    ) -> RaycastImage {
+        let margin = self.config.sdf_trunc() + START_MARGIN * self.config.voxel_size;
+        let starts = start_depths(
+            depth,
+            k,
+            self.config.depth_min,
+            self.config.depth_max,
+            margin,
+        );
+        self.cast(k, camera_to_world, options, starts.as_deref())
+    }
+
+    /// The ray cast; `starts` (one camera depth per pixel, row-major) moves the rays' starts
+    /// forward where it is larger than the range map's.
+    fn cast(
+        &self,
+        k: &Intrinsics,
+        camera_to_world: &Pose,
+        options: &RaycastOptions,
+        starts: Option<&[f32]>,
+    ) -> RaycastImage {
         let camera = Camera32::new(k);
         let (w, h) = (camera.width, camera.height);
         let mut depth = vec![0.0_f32; w * h];
@@ -883,7 +932,8 @@ impl TsdfVolume {
             let ranges = self.range_map(&ctx);
             let lookup = Lookup::new(self, &ranges);
             let rows = |v: usize, d: &mut [f32], c: &mut [u8], n: Option<&mut [[f32; 3]]>| {
-                cast_row(&ctx, &lookup, &ranges, v, d, c, n);
+                let starts = starts.and_then(|s| s.get(v * w..(v + 1) * w));
+                cast_row(&ctx, &lookup, &ranges, v, starts, d, c, n);
             };
             if options.normals {
                 depth
@@ -932,18 +982,27 @@ impl TsdfVolume {
     }
 }
 
-/// Casts the rays of image row `v`.
+/// Casts the rays of image row `v`, starting no earlier than `starts` where given.
+#[allow(
+    clippy::too_many_arguments,
+    reason = "one call site, which hands over a row's inputs and outputs"
+)]
 fn cast_row(
     ctx: &CastContext,
     lookup: &Lookup<'_>,
     ranges: &RangeMap,
     v: usize,
+    starts: Option<&[f32]>,
     depth: &mut [f32],
     rgb: &mut [u8],
     mut normals: Option<&mut [[f32; 3]]>,
 ) {
     for (u, d) in depth.iter_mut().enumerate() {
-        let Some(mut m) = March::new(ctx, ranges, u, v) else {
+        let start = starts
+            .and_then(|s| s.get(u))
+            .copied()
+            .unwrap_or(f32::NEG_INFINITY);
+        let Some(mut m) = March::new(ctx, ranges, u, v, start) else {
             continue;
         };
         let Some((a, b)) = (loop {
@@ -970,4 +1029,60 @@ fn cast_row(
             *n = hit.normal;
         }
     }
+}
+
+/// Per pixel, where a ray cast from the pose `depth` was fused at may start: `margin` before
+/// the nearest depth in `[depth_min, depth_max]` of its 3×3 neighbourhood, or −∞ where the
+/// pixel's own depth is not in that range. `None` when `depth` does not match the camera's size.
+///
+/// A minimum over the neighbourhood rather than the pixel's own depth, because a ray next to
+/// an occluding edge can meet the nearer surface's voxels, which extend half a voxel beyond
+/// the pixels that saw it.
+fn start_depths(
+    depth: &DepthImage,
+    k: &Intrinsics,
+    depth_min: f32,
+    depth_max: f32,
+    margin: f32,
+) -> Option<Vec<f32>> {
+    let (w, h) = (depth.width() as usize, depth.height() as usize);
+    if depth.width() != k.width || depth.height() != k.height || w == 0 || h == 0 {
+        return None;
+    }
+    let in_range = |d: f32| {
+        if d >= depth_min && d <= depth_max {
+            d
+        } else {
+            f32::INFINITY
+        }
+    };
+    // Horizontal then vertical minimum over three pixels (borders clamped).
+    let mut across = vec![f32::INFINITY; w * h];
+    across
+        .par_chunks_mut(w)
+        .zip(depth.as_raw().par_chunks(w))
+        .for_each(|(out, row)| {
+            for (x, out) in out.iter_mut().enumerate() {
+                let left = row[x.saturating_sub(1)];
+                let right = row[(x + 1).min(w - 1)];
+                *out = in_range(left).min(in_range(row[x])).min(in_range(right));
+            }
+        });
+    let mut starts = vec![f32::NEG_INFINITY; w * h];
+    starts.par_chunks_mut(w).enumerate().for_each(|(y, out)| {
+        let rows =
+            [y.saturating_sub(1), y, (y + 1).min(h - 1)].map(|r| &across[r * w..(r + 1) * w]);
+        let own = &depth.as_raw()[y * w..(y + 1) * w];
+        for (x, out) in out.iter_mut().enumerate() {
+            let nearest = rows[0][x].min(rows[1][x]).min(rows[2][x]);
+            // A pixel that measured nothing did not see the space in front of its neighbours'
+            // depths as free.
+            *out = if in_range(own[x]).is_finite() {
+                nearest - margin
+            } else {
+                f32::NEG_INFINITY
+            };
+        }
+    });
+    Some(starts)
 }

@@ -176,6 +176,83 @@ fn raycast_reproduces_a_plane_at_the_integration_pose_and_a_shifted_pose() {
     }
 }
 
+/// Casting near the depth just fused: on a static scene it reproduces the surface as well as
+/// the full march; where the hint has no depth it is the full march, to the bit; a wrong-sized
+/// hint is ignored; and where a surface moved away it shows the surface measured now.
+#[test]
+fn raycast_near_depth_matches_the_full_cast_and_follows_what_was_just_measured() {
+    let k = camera();
+    let plane = tilted_plane();
+    let pose = Pose::identity();
+    let depth = render(&plane, &k, &pose);
+    let colour = RgbImage::filled(k.width, k.height, [200, 100, 50]);
+    let mut tsdf = volume();
+    tsdf.integrate(&depth, &colour, &k, &pose);
+    let options = RaycastOptions::default();
+    let full = tsdf.raycast_with(&k, &pose, &options);
+    let near = tsdf.raycast_near_depth(&k, &pose, &options, &depth);
+    let (max, mean, n) = depth_errors(&near.depth, &depth);
+    assert!(n as f32 > 0.97 * depth.valid_count() as f32, "{n} hits");
+    assert!(mean < 0.2 * voxel(), "mean error {mean}");
+    assert!(max < 1.5 * voxel(), "max error {max}");
+    // The same pixels are hit with the same depths, up to where the marches sample, but for
+    // some in the two outermost columns, whose cells are partly outside the view (there,
+    // whether a march meets the surface depends on where it samples).
+    let inner = |i: usize| (2..k.width - 2).contains(&(i as u32 % k.width));
+    let mut differences: Vec<f32> = (0..full.depth.as_raw().len())
+        .filter(|&i| inner(i))
+        .map(|i| (full.depth.as_raw()[i] - near.depth.as_raw()[i]).abs())
+        .collect();
+    differences.sort_by(f32::total_cmp);
+    let quantile = |q: f64| differences[((differences.len() - 1) as f64 * q) as usize];
+    println!(
+        "near against full: median {} m, p99 {} m, max {} m",
+        quantile(0.5),
+        quantile(0.99),
+        quantile(1.0)
+    );
+    assert!(quantile(0.99) < 0.25 * voxel(), "p99 {}", quantile(0.99));
+    // The full cast itself is within 1.5 voxels of the truth (see above).
+    assert!(quantile(1.0) < 1.5 * voxel(), "max {}", quantile(1.0));
+    let one_only = (0..full.depth.as_raw().len())
+        .filter(|&i| (full.depth.as_raw()[i] > 0.0) != (near.depth.as_raw()[i] > 0.0))
+        .collect::<Vec<_>>();
+    assert!(one_only.iter().all(|&i| !inner(i)), "{one_only:?}");
+    assert!(one_only.len() < 50, "{} pixels", one_only.len());
+
+    let nothing = DepthImage::new(k.width, k.height, vec![0.0; (k.width * k.height) as usize]);
+    assert_eq!(
+        tsdf.raycast_near_depth(&k, &pose, &options, &nothing.unwrap()),
+        full
+    );
+    let small = DepthImage::new(4, 4, vec![1.0; 16]).unwrap();
+    assert_eq!(tsdf.raycast_near_depth(&k, &pose, &options, &small), full);
+
+    // A wall 1 m away, seen ten times, then gone: three frames see a wall 1.6 m away instead
+    // (a surface counts once three frames have seen it).
+    let wall = |d: f64| Plane {
+        n: Vector3::new(0.0, 0.0, 1.0),
+        d,
+    };
+    let mut tsdf = volume();
+    let before = render(&wall(1.0), &k, &pose);
+    for _ in 0..10 {
+        tsdf.integrate(&before, &colour, &k, &pose);
+    }
+    let after = render(&wall(1.6), &k, &pose);
+    for _ in 0..3 {
+        tsdf.integrate(&after, &colour, &k, &pose);
+    }
+    let centre = (k.height / 2 * k.width + k.width / 2) as usize;
+    // Three observations of free space do not outweigh ten of the wall: the full march still
+    // meets it (a little further back), the cast near the new depth meets the wall seen now.
+    let full = tsdf.raycast_with(&k, &pose, &options).depth.as_raw()[centre];
+    assert!(full > 0.99 && full < 1.1, "{full}");
+    let near = tsdf.raycast_near_depth(&k, &pose, &options, &after);
+    let near = near.depth.as_raw()[centre];
+    assert!((near - 1.6).abs() < voxel(), "{near}");
+}
+
 #[test]
 fn raycast_reproduces_a_sphere_fused_from_several_views() {
     let k = camera();
