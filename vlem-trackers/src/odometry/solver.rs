@@ -531,8 +531,8 @@ fn accumulate_hybrid(ctx: &Association<'_>, points: &[SourcePoint], step: &mut C
         let mut source_intensity = [0.0; LANES];
         p[2] = [-1.0; LANES];
         for (l, s) in group.iter().enumerate() {
-            for a in 0..3 {
-                p[a][l] = s.point[a];
+            for (axis, &x) in p.iter_mut().zip(&s.point) {
+                axis[l] = x;
             }
             source_intensity[l] = s.intensity;
         }
