@@ -97,8 +97,6 @@ pub struct Level {
     intensity: Vec<f32>,
     /// Scratch for smoothed depth (normals).
     smooth: Vec<f32>,
-    /// Scratch for the depth and intensity row passes of the target records.
-    passes: [RowPasses; 2],
 }
 
 /// A frame prepared for odometry, finest level first.
@@ -210,7 +208,6 @@ impl Level {
         let (width, height, camera) = (self.width, self.height, self.camera);
         self.target.clear();
         if params.as_target {
-            let [d, i] = &mut self.passes;
             target_records(
                 &self.depth,
                 &self.intensity,
@@ -218,8 +215,6 @@ impl Level {
                 height,
                 params.depth_downsample_diff * 0.5,
                 &mut self.target,
-                d,
-                i,
             );
         }
         self.source.clear();
@@ -270,17 +265,18 @@ impl Level {
     }
 }
 
+/// Image rows per parallel work item of [`target_records`].
+const BAND: usize = 16;
+
 /// The target records: Sobel derivatives of depth and intensity (scaled by 1/8, borders clamped).
 /// The depth derivative is unknown (NaN) next to a hole and where the 3×3 window spans a
 /// discontinuity (its depths spread over more than `max_diff`): a slope measured across an
 /// occluding edge describes neither surface and would pull the solve towards the edge.
 ///
 /// Computed separably (per-row horizontal sums, differences, minima and maxima, then combined
-/// over three rows), so each pass is a plain loop over a row that the compiler vectorises.
-#[allow(
-    clippy::too_many_arguments,
-    reason = "one call site; the buffers are reused"
-)]
+/// over three rows), so each pass is a plain loop over a row that the compiler vectorises. The
+/// image goes in bands of [`BAND`] rows whose horizontal passes (and one row above and below)
+/// stay in the cache, rather than through eight image-sized intermediate arrays.
 fn target_records(
     depth: &[f32],
     intensity: &[f32],
@@ -288,86 +284,75 @@ fn target_records(
     height: usize,
     max_diff: f32,
     target: &mut Vec<TargetPixel>,
-    d: &mut RowPasses,
-    i: &mut RowPasses,
 ) {
     target.resize(width * height, TargetPixel::default());
-    // Per row: [1 2 1] sum, [-1 0 1] difference, minimum and maximum over a clamped 3-pixel
-    // window.
-    let horizontal = |image: &[f32], out: &mut RowPasses| {
-        out.resize(width * height);
-        out.sum
-            .par_chunks_mut(width.max(1))
-            .zip(out.diff.par_chunks_mut(width.max(1)))
-            .zip(out.min.par_chunks_mut(width.max(1)))
-            .zip(out.max.par_chunks_mut(width.max(1)))
-            .enumerate()
-            .for_each(|(y, (((sum, diff), min), max))| {
-                let row = &image[y * width..(y + 1) * width];
-                for x in 0..width {
-                    let (l, c, r) = (
-                        row[x.saturating_sub(1)],
-                        row[x],
-                        row[(x + 1).min(width - 1)],
-                    );
-                    sum[x] = l + 2.0 * c + r;
-                    diff[x] = r - l;
-                    min[x] = l.min(c).min(r);
-                    max[x] = l.max(c).max(r);
-                }
-            });
-    };
-    horizontal(depth, d);
-    horizontal(intensity, i);
-    let (d, i) = (&*d, &*i);
+    if width == 0 || height == 0 {
+        return;
+    }
     target
-        .par_chunks_mut(width.max(1))
+        .par_chunks_mut(width * BAND)
         .enumerate()
-        .for_each(|(y, row)| {
-            let rows = [
-                y.saturating_sub(1) * width,
-                y * width,
-                (y + 1).min(height - 1) * width,
-            ];
-            let (ds, dd) = (
-                three_rows(&d.sum, rows, width),
-                three_rows(&d.diff, rows, width),
-            );
-            let (dmin, dmax) = (
-                three_rows(&d.min, rows, width),
-                three_rows(&d.max, rows, width),
-            );
-            let (is, id) = (
-                three_rows(&i.sum, rows, width),
-                three_rows(&i.diff, rows, width),
-            );
-            let centre_depth = &depth[y * width..(y + 1) * width];
-            let centre_intensity = &intensity[y * width..(y + 1) * width];
-            for (x, out) in row.iter_mut().enumerate() {
-                // A NaN anywhere in the window makes the sums NaN (min/max skip NaN).
-                let window_sum = ds[0][x] + ds[1][x] + ds[2][x];
-                let spread = dmax[0][x].max(dmax[1][x]).max(dmax[2][x])
-                    - dmin[0][x].min(dmin[1][x]).min(dmin[2][x]);
-                let smooth = !window_sum.is_nan() && spread <= max_diff;
-                let (dx, dy) = if smooth {
-                    (
-                        0.125 * (dd[0][x] + 2.0 * dd[1][x] + dd[2][x]),
-                        0.125 * (ds[2][x] - ds[0][x]),
-                    )
-                } else {
-                    (f32::NAN, f32::NAN)
-                };
-                *out = TargetPixel {
-                    depth: centre_depth[x],
-                    depth_dx: dx,
-                    depth_dy: dy,
-                    intensity: centre_intensity[x],
-                    intensity_dx: 0.125 * (id[0][x] + 2.0 * id[1][x] + id[2][x]),
-                    intensity_dy: 0.125 * (is[2][x] - is[0][x]),
-                    pad: [0.0; 2],
-                };
-            }
-        });
+        .for_each_init(
+            || [RowPasses::default(), RowPasses::default()],
+            |[d, i], (band, out)| {
+                let top = band * BAND;
+                // The band's rows and the clamped rows above and below it.
+                let first = top.saturating_sub(1);
+                let last = (top + out.len() / width).min(height - 1);
+                let rows = last + 1 - first;
+                d.resize(rows * width);
+                i.resize(rows * width);
+                for (k, y) in (first..=last).enumerate() {
+                    let at = y * width..(y + 1) * width;
+                    d.horizontal(&depth[at.clone()], k);
+                    i.horizontal(&intensity[at], k);
+                }
+                for (r, row) in out.chunks_mut(width).enumerate() {
+                    let y = top + r;
+                    // Offsets of rows y - 1, y and y + 1 (clamped) in the band's passes.
+                    let rows = [y.saturating_sub(1), y, (y + 1).min(height - 1)]
+                        .map(|yy| (yy - first) * width);
+                    let (ds, dd) = (
+                        three_rows(&d.sum, rows, width),
+                        three_rows(&d.diff, rows, width),
+                    );
+                    let (dmin, dmax) = (
+                        three_rows(&d.min, rows, width),
+                        three_rows(&d.max, rows, width),
+                    );
+                    let (is, id) = (
+                        three_rows(&i.sum, rows, width),
+                        three_rows(&i.diff, rows, width),
+                    );
+                    let centre_depth = &depth[y * width..(y + 1) * width];
+                    let centre_intensity = &intensity[y * width..(y + 1) * width];
+                    for (x, out) in row.iter_mut().enumerate() {
+                        // A NaN anywhere in the window makes the sums NaN (min/max skip NaN).
+                        let window_sum = ds[0][x] + ds[1][x] + ds[2][x];
+                        let spread = dmax[0][x].max(dmax[1][x]).max(dmax[2][x])
+                            - dmin[0][x].min(dmin[1][x]).min(dmin[2][x]);
+                        let smooth = !window_sum.is_nan() && spread <= max_diff;
+                        let (dx, dy) = if smooth {
+                            (
+                                0.125 * (dd[0][x] + 2.0 * dd[1][x] + dd[2][x]),
+                                0.125 * (ds[2][x] - ds[0][x]),
+                            )
+                        } else {
+                            (f32::NAN, f32::NAN)
+                        };
+                        *out = TargetPixel {
+                            depth: centre_depth[x],
+                            depth_dx: dx,
+                            depth_dy: dy,
+                            intensity: centre_intensity[x],
+                            intensity_dx: 0.125 * (id[0][x] + 2.0 * id[1][x] + id[2][x]),
+                            intensity_dy: 0.125 * (is[2][x] - is[0][x]),
+                            pad: [0.0; 2],
+                        };
+                    }
+                }
+            },
+        );
 }
 
 /// The rows starting at `starts`, each `width` long.
@@ -375,7 +360,7 @@ fn three_rows(values: &[f32], starts: [usize; 3], width: usize) -> [&[f32]; 3] {
     starts.map(|r| &values[r..r + width])
 }
 
-/// Horizontal passes of [`target_records`] over a whole image (kept per level for reuse).
+/// Horizontal passes of [`target_records`] over the rows of one band.
 #[derive(Clone, Debug, Default)]
 struct RowPasses {
     sum: Vec<f32>,
@@ -388,6 +373,26 @@ impl RowPasses {
     fn resize(&mut self, len: usize) {
         for v in [&mut self.sum, &mut self.diff, &mut self.min, &mut self.max] {
             v.resize(len, 0.0);
+        }
+    }
+
+    /// Fills row `k` of the passes from image row `row`: the [1 2 1] sum, the [-1 0 1]
+    /// difference, and the minimum and maximum over a clamped 3-pixel window.
+    fn horizontal(&mut self, row: &[f32], k: usize) {
+        let width = row.len();
+        let at = k * width..(k + 1) * width;
+        let (sum, diff) = (&mut self.sum[at.clone()], &mut self.diff[at.clone()]);
+        let (min, max) = (&mut self.min[at.clone()], &mut self.max[at]);
+        for x in 0..width {
+            let (l, c, r) = (
+                row[x.saturating_sub(1)],
+                row[x],
+                row[(x + 1).min(width - 1)],
+            );
+            sum[x] = l + 2.0 * c + r;
+            diff[x] = r - l;
+            min[x] = l.min(c).min(r);
+            max[x] = l.max(c).max(r);
         }
     }
 }
@@ -592,15 +597,26 @@ mod tests {
             .map(|i| 1.0 + 0.01 * (i % w) as f32 + if i % w >= 6 { 0.5 } else { 0.0 })
             .collect();
         let mut target = Vec::new();
-        let mut passes = [RowPasses::default(), RowPasses::default()];
-        let [d, i] = &mut passes;
-        target_records(&depth, &intensity, w, h, 0.07, &mut target, d, i);
+        target_records(&depth, &intensity, w, h, 0.07, &mut target);
         let (ix, iy) = sobel(&intensity, w, h);
         let (dx, _) = sobel(&depth, w, h);
         for k in 0..w * h {
             assert!((target[k].intensity_dx - ix[k]).abs() < 1e-6, "{k}");
             assert!((target[k].intensity_dy - iy[k]).abs() < 1e-6, "{k}");
             assert_eq!(target[k].depth, depth[k]);
+        }
+        // Taller than several bands, one of them partial: the rows next to the bands' edges
+        // see their neighbours in the next band.
+        let (w2, h2) = (w, 2 * BAND + 5);
+        let tall: Vec<f32> = (0..w2 * h2)
+            .map(|i| ((i * 37) % 11) as f32 / 11.0)
+            .collect();
+        let mut records = Vec::new();
+        target_records(&tall, &tall, w2, h2, 0.07, &mut records);
+        let (tx, ty) = sobel(&tall, w2, h2);
+        for k in 0..w2 * h2 {
+            assert!((records[k].intensity_dx - tx[k]).abs() < 1e-6, "{k}");
+            assert!((records[k].intensity_dy - ty[k]).abs() < 1e-6, "{k}");
         }
         // On the ramp the slope is 0.01 per pixel; next to the step it is unknown.
         let on_ramp = 3 * w + 2;
