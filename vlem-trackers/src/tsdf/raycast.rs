@@ -6,7 +6,9 @@
 //! `START_MARGIN` (2) voxels before the nearest of them (Open3D's range map, narrowed to blocks
 //! near a surface). All blocks in view go into a dense grid over their bounding box, built per
 //! cast, with a coarse occupancy grid of `4³`-block superblocks beside it (the hash map serves
-//! when the box is too large).
+//! when the box is too large). A cast from the pose a depth image was just fused at
+//! ([`TsdfVolume::raycast_near_depth`], as frame-to-model tracking casts) starts each ray shortly
+//! before the depth measured around its pixel instead.
 //!
 //! How a ray marches: it reads the 8-bit TSDF copy of the voxel nearest to each sample.
 //! Unallocated space is left through the far faces of the empty superblock (or block);
