@@ -132,15 +132,22 @@ fn tilted_plane() -> Plane {
     }
 }
 
-#[test]
-fn raycast_reproduces_a_plane_at_the_integration_pose_and_a_shifted_pose() {
+/// The tilted plane seen once from the identity pose: the camera, the depth and colour fused,
+/// and the volume.
+fn fused_tilted_plane() -> (Intrinsics, DepthImage, RgbImage, TsdfVolume) {
     let k = camera();
-    let plane = tilted_plane();
-    let pose = Pose::identity();
-    let depth = render(&plane, &k, &pose);
+    let depth = render(&tilted_plane(), &k, &Pose::identity());
     let colour = RgbImage::filled(k.width, k.height, [200, 100, 50]);
     let mut tsdf = volume();
-    tsdf.integrate(&depth, &colour, &k, &pose);
+    tsdf.integrate(&depth, &colour, &k, &Pose::identity());
+    (k, depth, colour, tsdf)
+}
+
+#[test]
+fn raycast_reproduces_a_plane_at_the_integration_pose_and_a_shifted_pose() {
+    let (k, depth, _, tsdf) = fused_tilted_plane();
+    let plane = tilted_plane();
+    let pose = Pose::identity();
     assert_eq!(tsdf.frame_count(), 1);
 
     let cast = tsdf.raycast(&k, &pose);
@@ -181,13 +188,8 @@ fn raycast_reproduces_a_plane_at_the_integration_pose_and_a_shifted_pose() {
 /// hint is ignored; and where a surface moved away it shows the surface measured now.
 #[test]
 fn raycast_near_depth_matches_the_full_cast_and_follows_what_was_just_measured() {
-    let k = camera();
-    let plane = tilted_plane();
+    let (k, depth, colour, tsdf) = fused_tilted_plane();
     let pose = Pose::identity();
-    let depth = render(&plane, &k, &pose);
-    let colour = RgbImage::filled(k.width, k.height, [200, 100, 50]);
-    let mut tsdf = volume();
-    tsdf.integrate(&depth, &colour, &k, &pose);
     let options = RaycastOptions::default();
     let full = tsdf.raycast_with(&k, &pose, &options);
     let near = tsdf.raycast_near_depth(&k, &pose, &options, &depth);
