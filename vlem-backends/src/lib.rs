@@ -73,6 +73,10 @@ pub mod onnx;
 #[cfg(feature = "sam")]
 pub mod sam;
 
+// Fused CPU loops of the candle models (the only `unsafe` of the crate: the `gemm` call).
+#[cfg(feature = "sam")]
+pub(crate) mod kernels;
+
 #[cfg(feature = "dinov3")]
 pub mod dinov3;
 

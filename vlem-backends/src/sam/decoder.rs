@@ -5,13 +5,17 @@
 //! where most of the proposer's time goes on a CPU. It follows the reference module by module
 //! (same tensor names), with one change of evaluation order that does not change the result:
 //! the first transformer layer's image-side projections are computed once and broadcast over the
-//! batch of prompts, since every prompt sees the same image embedding there.
+//! batch of prompts, since every prompt sees the same image embedding there. On the CPU the output
+//! upscaling and the hypernetwork product run fused ([`super::mask_head`]); elsewhere as candle
+//! ops.
 
 use candle_core::{Module, Result, Tensor};
 use candle_nn::{LayerNorm, Linear, VarBuilder};
 
 use super::image::INPUT_SIZE;
+use super::image_side::{self, ImageToToken, TokenToImage};
 use super::layers::{LayerNorm2d, apply_linear, cat_last, gelu, layer_norm, linear, softmax_last};
+use super::mask_head::FusedMaskHead;
 
 /// Channels of image embeddings and prompt tokens.
 pub const EMBED_DIM: usize = 256;
@@ -180,6 +184,24 @@ impl TwoWayBlock {
         })
     }
 
+    /// The tokens' self-attention (with its residual unless first) and its norm.
+    fn attend_self(&self, queries: &Tensor, query_pe: &Tensor) -> Result<Tensor> {
+        let queries = if self.skip_first_pe {
+            self.self_attn.forward(queries, queries, queries)?
+        } else {
+            let q = (queries + query_pe)?;
+            (queries + self.self_attn.forward(&q, &q, queries)?)?
+        };
+        self.norm1.forward(&queries)
+    }
+
+    /// The token-to-image attention's residual and norm, then the tokens' MLP and its norm.
+    fn after_token_to_image(&self, queries: &Tensor, attn: &Tensor) -> Result<Tensor> {
+        let queries = self.norm2.forward(&(queries + attn)?)?;
+        let mlp = apply_linear(&self.lin2, &apply_linear(&self.lin1, &queries)?.relu()?)?;
+        self.norm3.forward(&(queries + mlp)?)
+    }
+
     fn forward(
         &self,
         queries: &Tensor,
@@ -187,21 +209,11 @@ impl TwoWayBlock {
         query_pe: &Tensor,
         key_pe: &Tensor,
     ) -> Result<(Tensor, Tensor)> {
-        let queries = if self.skip_first_pe {
-            self.self_attn.forward(queries, queries, queries)?
-        } else {
-            let q = (queries + query_pe)?;
-            (queries + self.self_attn.forward(&q, &q, queries)?)?
-        };
-        let queries = self.norm1.forward(&queries)?;
-
+        let queries = self.attend_self(queries, query_pe)?;
         let q = (&queries + query_pe)?;
         let k = keys.broadcast_add(key_pe)?;
-        let queries = (&queries + self.cross_t2i.forward(&q, &k, keys)?)?;
-        let queries = self.norm2.forward(&queries)?;
-
-        let mlp = apply_linear(&self.lin2, &apply_linear(&self.lin1, &queries)?.relu()?)?;
-        let queries = self.norm3.forward(&(queries + mlp)?)?;
+        let attn = self.cross_t2i.forward(&q, &k, keys)?;
+        let queries = self.after_token_to_image(&queries, &attn)?;
 
         let q = (&queries + query_pe)?;
         let attn = self.cross_i2t.forward(&k, &q, &queries)?;
@@ -251,6 +263,19 @@ pub struct MaskDecoder {
     up2: UpConv2x2,
     hypernets: Vec<Mlp>,
     iou_head: Mlp,
+    /// The fused image side, on the CPU only.
+    fused: Option<Fused>,
+}
+
+/// The CPU path's fused pieces ([`super::image_side`], [`super::mask_head`]).
+#[derive(Debug)]
+struct Fused {
+    /// The token-to-image attentions of the layers after the first (the first sees one image
+    /// for all prompts and stays a candle op), then the final one.
+    token_to_image: Vec<TokenToImage>,
+    /// Each layer's image-to-token attention and norm.
+    image_to_token: Vec<ImageToToken>,
+    head: FusedMaskHead,
 }
 
 impl MaskDecoder {
@@ -264,10 +289,44 @@ impl MaskDecoder {
             .map(|i| TwoWayBlock::new(t.pp("layers").pp(i), i == 0))
             .collect::<Result<Vec<_>>>()?;
         let up = vb.pp("output_upscaling");
+        let head = if vb.device().is_cpu() {
+            let (up1, norm, up2) = (up.pp("0"), up.pp("1"), up.pp("3"));
+            Some(FusedMaskHead::new(
+                (
+                    &up1.get((d, d / 4, 2, 2), "weight")?,
+                    &up1.get(d / 4, "bias")?,
+                ),
+                (&norm.get(d / 4, "weight")?, &norm.get(d / 4, "bias")?, 1e-6),
+                (
+                    &up2.get((d / 4, d / 8, 2, 2), "weight")?,
+                    &up2.get(d / 8, "bias")?,
+                ),
+            )?)
+        } else {
+            None
+        };
+        let final_t2i = Attention::new(t.pp("final_attn_token_to_image"), d, 2)?;
+        let fused = match head {
+            Some(head) => Some(Fused {
+                token_to_image: layers
+                    .iter()
+                    .skip(1)
+                    .map(|l| &l.cross_t2i)
+                    .chain([&final_t2i])
+                    .map(|a| TokenToImage::new(&a.k, &a.v))
+                    .collect::<Result<Vec<_>>>()?,
+                image_to_token: layers
+                    .iter()
+                    .map(|l| ImageToToken::new(&l.cross_i2t.q, &l.cross_i2t.out, &l.norm4))
+                    .collect::<Result<Vec<_>>>()?,
+                head,
+            }),
+            None => None,
+        };
         Ok(Self {
             output_tokens: Tensor::cat(&[&iou_token, &mask_tokens], 0)?,
             layers,
-            final_t2i: Attention::new(t.pp("final_attn_token_to_image"), d, 2)?,
+            final_t2i,
             norm_final: layer_norm(t.pp("norm_final_attn"), d, 1e-5)?,
             up1: UpConv2x2::new(up.pp("0"), d, d / 4)?,
             up_ln: LayerNorm2d::new(up.pp("1"), d / 4, 1e-6)?,
@@ -276,6 +335,7 @@ impl MaskDecoder {
                 .map(|i| Mlp::new(vb.pp("output_hypernetworks_mlps").pp(i), d, d, d / 8, 3))
                 .collect::<Result<Vec<_>>>()?,
             iou_head: Mlp::new(vb.pp("iou_prediction_head"), d, 256, NUM_MASK_TOKENS, 3)?,
+            fused,
         })
     }
 
@@ -289,8 +349,103 @@ impl MaskDecoder {
         dense: &Tensor,
         sparse: &Tensor,
     ) -> Result<(Tensor, Tensor)> {
+        let tokens = self.tokens(sparse)?;
+        // Every prompt has the same image embedding (plus the same no-mask embedding): keep a
+        // batch of one until the first image update makes the keys differ.
+        let src = image.broadcast_add(dense)?;
+        let keys = src.flatten_from(2)?.transpose(1, 2)?.contiguous()?;
+        let key_pe = image_pe.flatten_from(2)?.transpose(1, 2)?.contiguous()?;
+        match &self.fused {
+            Some(fused) => self.forward_fused(fused, &tokens, &keys, &key_pe),
+            None => self.forward_with_ops(&tokens, &keys, &key_pe),
+        }
+    }
+
+    /// The transformer and the heads as candle ops (any device): `tokens` `(B, T, 256)`, `keys`
+    /// and `key_pe` `(1, 4096, 256)`.
+    fn forward_with_ops(
+        &self,
+        tokens: &Tensor,
+        keys: &Tensor,
+        key_pe: &Tensor,
+    ) -> Result<(Tensor, Tensor)> {
+        let mut queries = tokens.clone();
+        let mut keys = keys.clone();
+        for layer in &self.layers {
+            (queries, keys) = layer.forward(&queries, &keys, tokens, key_pe)?;
+        }
+        let q = (&queries + tokens)?;
+        let k = keys.broadcast_add(key_pe)?;
+        let queries = self
+            .norm_final
+            .forward(&(&queries + self.final_t2i.forward(&q, &k, &keys)?)?)?;
+        let (hyper, iou) = self.heads(&queries)?;
+        Ok((self.upscale_with_ops(&keys, &hyper)?, iou))
+    }
+
+    /// [`Self::forward_with_ops`] with the image side fused on the CPU: the token side stays
+    /// candle ops over the batch, each prompt's image tokens live in one buffer that the fused
+    /// attentions read and update.
+    fn forward_fused(
+        &self,
+        fused: &Fused,
+        tokens: &Tensor,
+        keys: &Tensor,
+        key_pe: &Tensor,
+    ) -> Result<(Tensor, Tensor)> {
+        let b = tokens.dim(0)?;
+        let pe = key_pe.flatten_all()?.to_vec1::<f32>()?;
+        let mut image = keys.flatten_all()?.to_vec1::<f32>()?.repeat(b);
+        let mut queries = tokens.clone();
+        for (l, (layer, image_to_token)) in
+            self.layers.iter().zip(&fused.image_to_token).enumerate()
+        {
+            queries = layer.attend_self(&queries, tokens)?;
+            let q = (&queries + tokens)?;
+            // `token_to_image[l - 1]`: the first layer has none.
+            let attn = match l.checked_sub(1).and_then(|i| fused.token_to_image.get(i)) {
+                Some(t2i) => {
+                    let q = apply_linear(&layer.cross_t2i.q, &q)?;
+                    let out = image_side::token_to_image(t2i, &image, &pe, &q)?;
+                    apply_linear(&layer.cross_t2i.out, &out)?
+                }
+                None => {
+                    // The first layer: one image for every prompt.
+                    let k = keys.broadcast_add(key_pe)?;
+                    layer.cross_t2i.forward(&q, &k, keys)?
+                }
+            };
+            queries = layer.after_token_to_image(&queries, &attn)?;
+            let q = (&queries + tokens)?;
+            let k = apply_linear(&layer.cross_i2t.k, &q)?;
+            let v = apply_linear(&layer.cross_i2t.v, &queries)?;
+            image_side::image_to_token(image_to_token, &mut image, &pe, &k, &v)?;
+        }
+        let final_t2i = fused
+            .token_to_image
+            .last()
+            .ok_or_else(|| candle_core::Error::Msg("no final attention".to_owned()))?;
+        let q = apply_linear(&self.final_t2i.q, &(&queries + tokens)?)?;
+        let out = image_side::token_to_image(final_t2i, &image, &pe, &q)?;
+        let attn = apply_linear(&self.final_t2i.out, &out)?;
+        let queries = self.norm_final.forward(&(&queries + attn)?)?;
+        let (hyper, iou) = self.heads(&queries)?;
+        let masks = fused
+            .head
+            .masks(&image, &hyper.flatten_all()?.to_vec1::<f32>()?);
+        let masks = Tensor::from_vec(
+            masks,
+            (b, NUM_MASK_TOKENS, GRID * 4, GRID * 4),
+            tokens.device(),
+        )?;
+        Ok((masks, iou))
+    }
+
+    /// The decoder's output tokens (IoU, then the masks') followed by each prompt's sparse
+    /// tokens: `(B, 5 + T, 256)`.
+    fn tokens(&self, sparse: &Tensor) -> Result<Tensor> {
         let b = sparse.dim(0)?;
-        let tokens = Tensor::cat(
+        Tensor::cat(
             &[
                 &self
                     .output_tokens
@@ -300,44 +455,61 @@ impl MaskDecoder {
                 sparse,
             ],
             1,
-        )?;
-        // Every prompt has the same image embedding (plus the same no-mask embedding): keep a
-        // batch of one until the first image update makes the keys differ.
-        let src = image.broadcast_add(dense)?;
-        let keys = src.flatten_from(2)?.transpose(1, 2)?.contiguous()?;
-        let key_pe = image_pe.flatten_from(2)?.transpose(1, 2)?.contiguous()?;
+        )
+    }
 
-        let mut queries = tokens.clone();
-        let mut keys = keys;
-        for layer in &self.layers {
-            (queries, keys) = layer.forward(&queries, &keys, &tokens, &key_pe)?;
-        }
-        let q = (&queries + &tokens)?;
-        let k = keys.broadcast_add(&key_pe)?;
-        let queries = self
-            .norm_final
-            .forward(&(&queries + self.final_t2i.forward(&q, &k, &keys)?)?)?;
-
+    /// The hypernetwork outputs `(B, 4, 32)` and the IoU predictions `(B, 4)` of the final
+    /// tokens.
+    fn heads(&self, queries: &Tensor) -> Result<(Tensor, Tensor)> {
         let iou_out = queries.narrow(1, 0, 1)?.squeeze(1)?;
         let mask_out = queries.narrow(1, 1, NUM_MASK_TOKENS)?;
-        let keys = keys.broadcast_as((b, GRID * GRID, EMBED_DIM))?;
-        let src = keys.transpose(1, 2)?.reshape((b, EMBED_DIM, GRID, GRID))?;
-        let up = gelu(&self.up_ln.forward(&self.up1.forward(&src)?)?)?;
-        let up = gelu(&self.up2.forward(&up)?)?;
         let hyper = self
             .hypernets
             .iter()
             .enumerate()
             .map(|(i, mlp)| mlp.forward(&mask_out.narrow(1, i, 1)?.squeeze(1)?))
             .collect::<Result<Vec<_>>>()?;
-        let hyper = Tensor::stack(&hyper, 1)?;
+        Ok((Tensor::stack(&hyper, 1)?, self.iou_head.forward(&iou_out)?))
+    }
+
+    /// The mask logits `(B, 4, 256, 256)` of the final image tokens `(B or 1, 4096, 256)` and
+    /// the hypernetwork outputs `(B, 4, 32)`, as candle ops (any device).
+    fn upscale_with_ops(&self, keys: &Tensor, hyper: &Tensor) -> Result<Tensor> {
+        let b = hyper.dim(0)?;
+        let keys = keys.broadcast_as((b, GRID * GRID, EMBED_DIM))?;
+        let src = keys.transpose(1, 2)?.reshape((b, EMBED_DIM, GRID, GRID))?;
+        let up = gelu(&self.up_ln.forward(&self.up1.forward(&src)?)?)?;
+        let up = gelu(&self.up2.forward(&up)?)?;
         let (_, c, h, w) = up.dims4()?;
-        let masks =
-            hyper
-                .matmul(&up.reshape((b, c, h * w))?)?
-                .reshape((b, NUM_MASK_TOKENS, h, w))?;
-        let iou = self.iou_head.forward(&iou_out)?;
-        Ok((masks, iou))
+        hyper
+            .matmul(&up.reshape((b, c, h * w))?)?
+            .reshape((b, NUM_MASK_TOKENS, h, w))
+    }
+
+    /// Both paths of [`Self::forward`], fused then candle ops, for the tests.
+    #[cfg(test)]
+    fn forward_both(
+        &self,
+        image: &Tensor,
+        image_pe: &Tensor,
+        dense: &Tensor,
+        sparse: &Tensor,
+    ) -> Result<[(Tensor, Tensor); 2]> {
+        let fused = self
+            .fused
+            .as_ref()
+            .ok_or_else(|| candle_core::Error::Msg("no fused path".to_owned()))?;
+        let tokens = self.tokens(sparse)?;
+        let keys = image
+            .broadcast_add(dense)?
+            .flatten_from(2)?
+            .transpose(1, 2)?
+            .contiguous()?;
+        let key_pe = image_pe.flatten_from(2)?.transpose(1, 2)?.contiguous()?;
+        Ok([
+            self.forward_fused(fused, &tokens, &keys, &key_pe)?,
+            self.forward_with_ops(&tokens, &keys, &key_pe)?,
+        ])
     }
 }
 
@@ -376,5 +548,80 @@ impl UpConv2x2 {
             .permute((0, 3, 1, 4, 2, 5))?
             .reshape((b, self.out, 2 * h, 2 * w))?
             .broadcast_add(&self.bias)
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use candle_core::{Device, Tensor};
+
+    use super::*;
+    use crate::sam::synthetic::SyntheticWeights;
+
+    /// Values in `[-1, 1)`, deterministic.
+    fn spread(n: usize, seed: u64) -> Vec<f32> {
+        (0..n as u64)
+            .map(|i| {
+                let z = crate::sam::amg::splitmix64_mix(i.wrapping_mul(31).wrapping_add(seed));
+                (z >> 40) as f32 / 8_388_608.0 - 1.0
+            })
+            .collect()
+    }
+
+    fn max_abs(t: &Tensor) -> Result<f32> {
+        t.abs()?.flatten_all()?.max(0)?.to_scalar::<f32>()
+    }
+
+    #[test]
+    fn fused_upscaling_matches_the_candle_ops() -> Result<()> {
+        let vb = SyntheticWeights::new().var_builder(&Device::Cpu);
+        let decoder = MaskDecoder::new(vb.pp("mask_decoder"))?;
+        let Some(fused) = &decoder.fused else {
+            panic!("the CPU decoder has the fused path");
+        };
+        let b = 3;
+        let keys = Tensor::from_vec(
+            spread(b * GRID * GRID * EMBED_DIM, 1),
+            (b, GRID * GRID, EMBED_DIM),
+            &Device::Cpu,
+        )?;
+        let hyper = Tensor::from_vec(spread(b * 4 * 32, 2), (b, 4, 32), &Device::Cpu)?;
+        let masks = fused.head.masks(
+            &keys.flatten_all()?.to_vec1::<f32>()?,
+            &hyper.flatten_all()?.to_vec1::<f32>()?,
+        );
+        let masks = Tensor::from_vec(masks, (b, 4, 256, 256), &Device::Cpu)?;
+        let ops = decoder.upscale_with_ops(&keys, &hyper)?;
+        assert!(max_abs(&ops)? > 0.1, "logits of a realistic size");
+        let diff = max_abs(&(&masks - &ops)?)?;
+        assert!(diff < 1e-4, "max difference {diff}");
+        Ok(())
+    }
+
+    #[test]
+    fn fused_decoder_matches_the_candle_ops() -> Result<()> {
+        let vb = SyntheticWeights::new().var_builder(&Device::Cpu);
+        let prompt = PromptEncoder::new(vb.pp("prompt_encoder"))?;
+        let decoder = MaskDecoder::new(vb.pp("mask_decoder"))?;
+        let image = Tensor::from_vec(
+            spread(EMBED_DIM * GRID * GRID, 3),
+            (1, EMBED_DIM, GRID, GRID),
+            &Device::Cpu,
+        )?;
+        let points = [[100.0, 200.0], [512.5, 40.0], [1000.0, 900.0]];
+        let sparse = prompt.embed_points(&points)?;
+        let [(masks, iou), (masks_ops, iou_ops)] = decoder.forward_both(
+            &image,
+            &prompt.dense_pe()?,
+            &prompt.no_mask_dense()?,
+            &sparse,
+        )?;
+        assert_eq!(masks.dims(), &[3, 4, 256, 256]);
+        assert!(max_abs(&masks_ops)? > 0.1, "logits of a realistic size");
+        let diff = max_abs(&(&masks - &masks_ops)?)?;
+        assert!(diff < 1e-4, "masks: max difference {diff}");
+        let diff = max_abs(&(&iou - &iou_ops)?)?;
+        assert!(diff < 1e-5, "IoU: max difference {diff}");
+        Ok(())
     }
 }

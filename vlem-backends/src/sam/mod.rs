@@ -50,7 +50,9 @@
 pub mod amg;
 pub mod decoder;
 pub mod image;
+mod image_side;
 pub mod layers;
+mod mask_head;
 pub mod model;
 pub mod synthetic;
 pub mod tiny_vit;
