@@ -4,7 +4,9 @@
 //! Why it exists: the paper's segment embeddings (section "Segment-Embeddings") encode one crop
 //! per SAM region, and fill the areas SAM left unsegmented with a second round of point prompts.
 //! This module owns that proposer: SAM (ViT-B/L/H or MobileSAM's TinyViT, on candle, CPU) run as
-//! the reference's automatic mask generator, then the refinement.
+//! the reference's automatic mask generator, then the refinement. The mask decoder runs once per
+//! grid point, so on the CPU its per-prompt image side is fused (`image_side`, `mask_head`); the
+//! same network as candle ops is the path of other devices and the tests' reference.
 //!
 //! Per frame:
 //! 1. The image is resized (longest side 1024, Pillow's bilinear filter), normalised, padded and

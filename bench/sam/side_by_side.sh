@@ -1,0 +1,46 @@
+#!/bin/bash
+# SAM's automatic mask generator on one 640x480 frame, vlem (example `sam_bench`) against the
+# reference package (segment-anything 1.0 for ViT-B, mobile_sam for MobileSAM) in the same run,
+# full-size networks with random weights, one JSON line per variant with both times and the ratio.
+#
+#   python3 -m venv bench/.venv-torch     # the reference only; PyTorch stays out of CI
+#   bench/.venv-torch/bin/pip install torch torchvision segment-anything timm
+#   bench/.venv-torch/bin/pip install --no-deps mobilesam-mirror
+#   bench/sam/side_by_side.sh [--threads N] [--points-per-side N] [VARIANT...]   # default: mobile-sam vit-b
+set -euo pipefail
+cd "$(dirname "$0")/../.."
+THREADS=2
+SIDE=16
+VARIANTS=()
+while [ $# -gt 0 ]; do
+  case "$1" in
+    --threads) THREADS=$2; shift 2 ;;
+    --points-per-side) SIDE=$2; shift 2 ;;
+    *) VARIANTS+=("$1"); shift ;;
+  esac
+done
+[ ${#VARIANTS[@]} -gt 0 ] || VARIANTS=(mobile-sam vit-b)
+PY=${PYTHON:-bench/.venv-torch/bin/python}
+cargo build --release -q -p vlem-backends --features sam --example sam_bench
+for v in "${VARIANTS[@]}"; do
+  ours=$(RAYON_NUM_THREADS=$THREADS target/release/examples/sam_bench --variant "$v" \
+    --points-per-side "$SIDE" --refine off,on)
+  ref=$("$PY" -W ignore bench/sam/reference_bench.py --variant "$v" --points-per-side "$SIDE" \
+    --threads "$THREADS" 2>/dev/null | tail -1)
+  OURS="$ours" "$PY" - "$v" "$SIDE" "$THREADS" "$ref" <<'PY'
+import json, os, re, sys
+variant, side, threads, ref = sys.argv[1], int(sys.argv[2]), int(sys.argv[3]), json.loads(sys.argv[4])
+text = os.environ["OURS"]
+enc = float(re.search(r"image encoder (\d+) ms", text).group(1)) / 1e3
+dec = float(re.search(r"mask decoder ([\d.]+) ms per prompt", text).group(1))
+rows = {m.group(1): float(m.group(2)) / 1e3 for m in re.finditer(r"\| \w+ \| \d+ \| (on|off) \| (\d+) \|", text)}
+print(json.dumps({
+    "variant": variant, "points_per_side": side, "threads": threads,
+    "vlem_image_encoder_s": enc, "vlem_decoder_ms_per_prompt": dec,
+    "vlem_generator_s": rows["off"], "vlem_generator_refine_s": rows["on"],
+    "reference": ref["impl"], "reference_image_encoder_s": ref["image_encoder_s"],
+    "reference_generator_s": ref["generator_s"],
+    "ratio_reference_over_vlem": round(ref["generator_s"] / rows["off"], 2),
+}))
+PY
+done
