@@ -59,6 +59,9 @@ enum Command {
 }
 
 fn main() -> std::process::ExitCode {
+    // The model backends allocate large buffers per op: keep freed ones for reuse (2x on a
+    // NARADIO frame; `VLEM_KEEP_FREED_MEMORY=0` turns it off).
+    vlem_backends::keep_freed_memory();
     let outcome = match Cli::parse().command {
         Command::Run(args) => cli::run::execute(&args),
         Command::Query(args) => cli::query::execute(args),

@@ -39,6 +39,8 @@ fn config(embed_dim: usize, depth: usize, num_heads: usize) -> RadioConfig {
 }
 
 fn main() -> anyhow::Result<()> {
+    // As the `vlem` binary runs the models.
+    vlem_backends::keep_freed_memory();
     let args: Vec<String> = std::env::args().collect();
     let which = args.get(1).map_or("both", String::as_str);
     let iterations: usize = args.get(2).map_or(Ok(3), |s| s.parse())?;

@@ -55,6 +55,8 @@ fn frame() -> Result<RgbImage> {
 }
 
 fn main() -> Result<()> {
+    // As the `vlem` binary runs the models.
+    vlem_backends::keep_freed_memory();
     let mut variant = SamVariant::MobileSam;
     let mut sides = vec![32usize, 16];
     let mut refines = vec![true, false];

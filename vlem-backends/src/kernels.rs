@@ -1,12 +1,15 @@
-//! CPU kernels for the places where a chain of candle ops costs more than its arithmetic: a matrix
-//! product into a caller's buffer, and the exact GELU in one vectorisable pass.
+//! CPU kernels for the places where candle's CPU ops cost more than their arithmetic: a matrix
+//! product into a caller's buffer, `exp` and the exact GELU in vectorisable loops, and the models'
+//! activations and softmax as candle ops that use them on the CPU.
 //!
 //! Why it exists: on the CPU every candle op allocates its output and makes one pass over memory,
 //! so a chain of cheap element-wise ops over large intermediates (SAM's mask decoder upscales each
-//! prompt to 4-8 MB tensors) is bound by allocation, page faults and memory traffic, and candle's
-//! exact GELU calls the scalar `erf` of `libm` per element. A fused loop over a cache-sized band
-//! with these two kernels does the same arithmetic without that. The callers keep the candle op
-//! chain for other devices and test the fused loop against it.
+//! prompt to 4-8 MB tensors) is bound by allocation, page faults and memory traffic; and candle
+//! computes `exp` and the exact GELU's `erf` with scalar library calls on one thread (together
+//! ~18 % of a NARADIO frame). Fused loops over cache-sized bands use [`matmul`] and [`erf`]; the
+//! models' GELU, quick GELU and softmax go through [`gelu_erf`], [`quick_gelu`] and
+//! [`softmax_last_dim`], which run these loops on both cores for f32 CPU tensors and are candle's
+//! own ops on every other device and dtype (so model code stays device-generic).
 //!
 //! `unsafe` lives here alone (the workspace denies it elsewhere): [`matmul`] calls the `gemm`
 //! crate, candle's own CPU matrix product, whose entry point takes raw pointers and strides. The
@@ -112,6 +115,181 @@ pub fn gelu_erf_in_place(xs: &mut [f32]) {
     }
 }
 
+/// `eˣ` in f32 without a call, so loops over it vectorise: `x = n·ln 2 + r` with `|r| ≤ ln 2 / 2`,
+/// `eʳ` by its degree-7 Taylor polynomial (truncation below 2e-9 relative), `2ⁿ` built in the
+/// exponent bits. Relative error within a few ulp (the test measures it); inputs are clamped to
+/// `[-87.3, 88]`, so results stay normal numbers (`e^-87.3` ≈ 1.2e-38 instead of smaller
+/// values or 0: below f32's precision of anything it is added to), `+∞` is never returned.
+#[inline(always)]
+pub fn exp(x: f32) -> f32 {
+    // ln 2 split in a part with few mantissa bits (exact products with n) and the rest.
+    const LN2_HI: f32 = 0.693_359_4;
+    const LN2_LO: f32 = -2.121_944_4e-4;
+    // 1.5 · 2²³: adding and subtracting it rounds to the nearest integer.
+    const ROUND: f32 = 12_582_912.0;
+    let x = x.clamp(-87.3, 88.0);
+    let n = (x * std::f32::consts::LOG2_E + ROUND) - ROUND;
+    let r = (x - n * LN2_HI) - n * LN2_LO;
+    let mut p = 1.0 / 5040.0;
+    for c in [
+        1.0 / 720.0,
+        1.0 / 120.0,
+        1.0 / 24.0,
+        1.0 / 6.0,
+        0.5,
+        1.0,
+        1.0,
+    ] {
+        p = p * r + c;
+    }
+    let scale = f32::from_bits(((n as i32 + 127) as u32) << 23);
+    p * scale
+}
+
+/// CLIP's quick GELU, `x · σ(1.702 x)`, in place.
+pub fn quick_gelu_in_place(xs: &mut [f32]) {
+    for x in xs {
+        *x /= 1.0 + exp(-1.702 * *x);
+    }
+}
+
+/// Softmax of each run of `len` consecutive values, in place.
+pub fn softmax_runs(values: &mut [f32], len: usize) {
+    if len == 0 {
+        return;
+    }
+    for run in values.chunks_exact_mut(len) {
+        let max = max_lanes(run);
+        // Separate loops: a running sum in the `exp` loop would keep it from vectorising.
+        for v in run.iter_mut() {
+            *v = exp(*v - max);
+        }
+        let inv = 1.0 / sum_lanes(run);
+        for v in run.iter_mut() {
+            *v *= inv;
+        }
+    }
+}
+
+/// The sum of `values` in eight interleaved partial sums, which vectorise (a single running sum
+/// is one dependent add per element).
+pub fn sum_lanes(values: &[f32]) -> f32 {
+    let mut lanes = [0.0f32; 8];
+    let chunks = values.chunks_exact(8);
+    let rest: f32 = chunks.remainder().iter().sum();
+    for chunk in chunks {
+        for (l, v) in lanes.iter_mut().zip(chunk) {
+            *l += v;
+        }
+    }
+    lanes.iter().sum::<f32>() + rest
+}
+
+/// The largest of `values` (`-∞` for none) in eight interleaved lanes, like [`sum_lanes`].
+pub fn max_lanes(values: &[f32]) -> f32 {
+    let mut lanes = [f32::NEG_INFINITY; 8];
+    let chunks = values.chunks_exact(8);
+    let rest = chunks
+        .remainder()
+        .iter()
+        .fold(f32::NEG_INFINITY, |m, &v| m.max(v));
+    for chunk in chunks {
+        for (l, &v) in lanes.iter_mut().zip(chunk) {
+            *l = if v > *l { v } else { *l };
+        }
+    }
+    lanes.iter().fold(rest, |m, &v| m.max(v))
+}
+
+/// Elements per parallel task of the element-wise ops: large enough that a task's work dwarfs
+/// rayon's overhead, small enough that both cores get work on a ViT's activations.
+const TASK: usize = 1 << 15;
+
+/// An f32 element-wise op, or a softmax over the last dimension, on a CPU tensor.
+#[derive(Clone, Copy, Debug, PartialEq, Eq)]
+enum CpuOp {
+    GeluErf,
+    QuickGelu,
+    SoftmaxLastDim,
+}
+
+impl candle_core::CustomOp1 for CpuOp {
+    fn name(&self) -> &'static str {
+        match self {
+            CpuOp::GeluErf => "vlem-gelu-erf",
+            CpuOp::QuickGelu => "vlem-quick-gelu",
+            CpuOp::SoftmaxLastDim => "vlem-softmax-last-dim",
+        }
+    }
+
+    fn cpu_fwd(
+        &self,
+        storage: &candle_core::CpuStorage,
+        layout: &candle_core::Layout,
+    ) -> candle_core::Result<(candle_core::CpuStorage, candle_core::Shape)> {
+        use rayon::prelude::*;
+        let (candle_core::CpuStorage::F32(values), Some((start, end))) =
+            (storage, layout.contiguous_offsets())
+        else {
+            return Err(candle_core::Error::Msg(format!(
+                "{} takes a contiguous f32 tensor",
+                self.name()
+            )));
+        };
+        let mut out = values[start..end].to_vec();
+        match self {
+            CpuOp::GeluErf => out.par_chunks_mut(TASK).for_each(gelu_erf_in_place),
+            CpuOp::QuickGelu => out.par_chunks_mut(TASK).for_each(quick_gelu_in_place),
+            CpuOp::SoftmaxLastDim => {
+                let len = layout.dims().last().copied().unwrap_or(1).max(1);
+                let rows = (TASK / len).max(1);
+                out.par_chunks_mut(rows * len)
+                    .for_each(|chunk| softmax_runs(chunk, len));
+            }
+        }
+        Ok((candle_core::CpuStorage::F32(out), layout.shape().clone()))
+    }
+}
+
+/// Runs `op` on an f32 CPU tensor, `fallback` (candle's own op) otherwise.
+fn on_cpu_or(
+    x: &candle_core::Tensor,
+    op: CpuOp,
+    fallback: impl FnOnce(&candle_core::Tensor) -> candle_core::Result<candle_core::Tensor>,
+) -> candle_core::Result<candle_core::Tensor> {
+    if x.device().is_cpu() && x.dtype() == candle_core::DType::F32 {
+        x.contiguous()?.apply_op1_no_bwd(&op)
+    } else {
+        fallback(x)
+    }
+}
+
+/// The exact GELU (PyTorch's `nn.GELU()`, candle's `gelu_erf`).
+///
+/// # Errors
+/// Candle's, on other devices.
+pub fn gelu_erf(x: &candle_core::Tensor) -> candle_core::Result<candle_core::Tensor> {
+    on_cpu_or(x, CpuOp::GeluErf, |x| x.gelu_erf())
+}
+
+/// CLIP's quick GELU, `x · σ(1.702 x)`.
+///
+/// # Errors
+/// Candle's, on other devices.
+pub fn quick_gelu(x: &candle_core::Tensor) -> candle_core::Result<candle_core::Tensor> {
+    on_cpu_or(x, CpuOp::QuickGelu, |x| {
+        x * candle_nn::ops::sigmoid(&(x * 1.702)?)?
+    })
+}
+
+/// Softmax over the last dimension (candle-nn's `softmax_last_dim`).
+///
+/// # Errors
+/// Candle's, on other devices.
+pub fn softmax_last_dim(x: &candle_core::Tensor) -> candle_core::Result<candle_core::Tensor> {
+    on_cpu_or(x, CpuOp::SoftmaxLastDim, candle_nn::ops::softmax_last_dim)
+}
+
 #[cfg(test)]
 mod tests {
     use super::*;
@@ -167,6 +345,45 @@ mod tests {
         for (got, want) in xs.iter().zip(&expected) {
             assert!((f64::from(*got) - want).abs() < 1e-6, "{got} vs {want}");
         }
+    }
+
+    #[test]
+    fn exp_is_within_a_few_ulp() {
+        let mut worst = 0.0f64;
+        for i in -87_000..=87_900 {
+            let x = i as f32 * 1e-3 + 0.000_37;
+            let want = f64::from(x).exp();
+            worst = worst.max((f64::from(exp(x)) - want).abs() / want);
+        }
+        assert!(worst < 4e-7, "max relative error {worst:e}");
+        assert_eq!(exp(0.0), 1.0);
+        assert!(exp(-1000.0) > 0.0 && exp(-1000.0) < 2e-38);
+        assert!(exp(f32::NEG_INFINITY) < 2e-38 && exp(1000.0).is_finite());
+    }
+
+    #[test]
+    fn tensor_ops_match_candles_own() -> candle_core::Result<()> {
+        use candle_core::{Device, Tensor};
+        let values: Vec<f32> = (0..3 * 70_001)
+            .map(|i| ((i * 37) % 1001) as f32 * 0.013 - 6.5)
+            .collect();
+        let x = Tensor::from_vec(values, (3, 70_001), &Device::Cpu)?;
+        let max_diff = |a: &Tensor, b: &Tensor| -> candle_core::Result<f32> {
+            (a - b)?.abs()?.flatten_all()?.max(0)?.to_scalar::<f32>()
+        };
+        assert!(max_diff(&gelu_erf(&x)?, &x.gelu_erf()?)? < 2e-6);
+        let quick = (&x * candle_nn::ops::sigmoid(&(&x * 1.702)?)?)?;
+        assert!(max_diff(&quick_gelu(&x)?, &quick)? < 2e-6);
+        // Rows of several lengths, one longer than a task; a transposed (strided) input.
+        for len in [1, 7, 197, 40_000] {
+            let y = x.flatten_all()?.narrow(0, 0, 4 * len)?.reshape((4, len))?;
+            let want = candle_nn::ops::softmax_last_dim(&y)?;
+            assert!(max_diff(&softmax_last_dim(&y)?, &want)? < 1e-6, "len {len}");
+        }
+        let t = x.narrow(1, 0, 500)?.t()?;
+        let want = candle_nn::ops::softmax_last_dim(&t.contiguous()?)?;
+        assert!(max_diff(&softmax_last_dim(&t)?, &want)? < 1e-6);
+        Ok(())
     }
 
     #[test]

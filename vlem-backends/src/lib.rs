@@ -44,8 +44,10 @@
 //! [`vlem_core::feature_hint!`] whether or not it is compiled in, so that asking a binary built
 //! without it for the backend says which feature to enable.
 
+mod allocator;
 mod error;
 
+pub use allocator::{KEEP_FREED_MEMORY_ENV, keep_freed_memory};
 pub use error::{BackendError, MINILM_INSTALL_HINT};
 
 #[cfg(feature = "label-text")]
@@ -73,8 +75,21 @@ pub mod onnx;
 #[cfg(feature = "sam")]
 pub mod sam;
 
-// Fused CPU loops of the candle models (the only `unsafe` of the crate: the `gemm` call).
-#[cfg(feature = "sam")]
+// CPU kernels of the candle models (with `allocator`, the crate's only `unsafe`: the `gemm` call).
+#[cfg(any(
+    feature = "clip",
+    feature = "dinov3",
+    feature = "naradio",
+    feature = "sam",
+    feature = "label-text"
+))]
+#[cfg_attr(
+    not(all(feature = "sam", feature = "clip")),
+    allow(
+        dead_code,
+        reason = "each backend uses a subset: `sam` the matrix product, `clip` the quick GELU"
+    )
+)]
 pub(crate) mod kernels;
 
 #[cfg(feature = "dinov3")]

@@ -35,7 +35,7 @@ impl Activation {
 
     pub(crate) fn apply(self, x: &Tensor) -> candle_core::Result<Tensor> {
         match self {
-            Self::Gelu => x.gelu_erf(),
+            Self::Gelu => crate::kernels::gelu_erf(x),
             Self::GeluTanh => x.gelu(),
             Self::Silu => x.silu(),
         }
@@ -265,7 +265,7 @@ impl Attention {
             Some(m) => logits.broadcast_add(m)?,
             None => logits,
         };
-        let weights = candle_nn::ops::softmax_last_dim(&logits)?;
+        let weights = crate::kernels::softmax_last_dim(&logits)?;
         let mixed = weights
             .matmul(&v)?
             .transpose(1, 2)?

@@ -50,6 +50,9 @@ fn plugins(py: Python<'_>) -> PyResult<Vec<Bound<'_, PyDict>>> {
 
 #[pymodule]
 fn _vlem(module: &Bound<'_, PyModule>) -> PyResult<()> {
+    // As the `vlem` binary: keep freed model buffers for reuse (`VLEM_KEEP_FREED_MEMORY=0` before
+    // the import turns it off).
+    vlem_backends::keep_freed_memory();
     module.add("__version__", env!("CARGO_PKG_VERSION"))?;
     module.add_class::<pipeline::PyPipeline>()?;
     module.add_class::<pipeline::PyFeed>()?;

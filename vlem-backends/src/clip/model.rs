@@ -80,8 +80,8 @@ impl Activation {
 
     fn apply(self, x: &Tensor) -> candle_core::Result<Tensor> {
         match self {
-            Self::QuickGelu => x * candle_nn::ops::sigmoid(&(x * 1.702)?)?,
-            Self::Gelu => x.gelu_erf(),
+            Self::QuickGelu => crate::kernels::quick_gelu(x),
+            Self::Gelu => crate::kernels::gelu_erf(x),
             Self::GeluTanh => x.gelu(),
         }
     }
@@ -450,7 +450,7 @@ impl Attention {
             Some(m) => logits.broadcast_add(m)?,
             None => logits,
         };
-        let weights = candle_nn::ops::softmax_last_dim(&logits)?;
+        let weights = crate::kernels::softmax_last_dim(&logits)?;
         let mixed = weights
             .matmul(&v)?
             .transpose(1, 2)?

@@ -196,10 +196,10 @@ impl AdaptorMlp {
             } => {
                 let mut x = fc1.forward(x)?;
                 for (norm, linear) in blocks {
-                    let y = linear.forward(&norm.forward(&x)?.gelu_erf()?)?;
+                    let y = linear.forward(&crate::kernels::gelu_erf(&norm.forward(&x)?)?)?;
                     x = (x + y)?;
                 }
-                final_linear.forward(&final_norm.forward(&x)?.gelu_erf()?)
+                final_linear.forward(&crate::kernels::gelu_erf(&final_norm.forward(&x)?)?)
             }
             Self::V1 {
                 fc1,
@@ -772,7 +772,7 @@ pub(crate) fn naclip_attention(
     let v = qkv.get(2)?.contiguous()?;
     let logits = (k.matmul(&k.t()?)? * (head_dim as f64).powf(-0.5))?;
     let logits = logits.broadcast_add(&prior.to_dtype(DType::F32)?)?;
-    let weights = candle_nn::ops::softmax_last_dim(&logits)?;
+    let weights = crate::kernels::softmax_last_dim(&logits)?;
     let mixed = weights
         .matmul(&v)?
         .transpose(1, 2)?

@@ -23,7 +23,7 @@ use candle_nn::{LayerNorm, Linear};
 use rayon::prelude::*;
 
 use super::decoder::{EMBED_DIM, GRID};
-use crate::kernels::matmul;
+use crate::kernels::{matmul, softmax_runs};
 
 /// Attention heads of the decoder's attentions.
 const HEADS: usize = 8;
@@ -131,21 +131,6 @@ fn move_projection(
     for (col, row) in rows.chunks_exact(EMBED_DIM).enumerate() {
         for (c, v) in row.iter().enumerate() {
             moved[c * cols + col] = *v;
-        }
-    }
-}
-
-/// Softmax of each run of `len` consecutive values, in place.
-fn softmax_runs(values: &mut [f32], len: usize) {
-    for run in values.chunks_exact_mut(len) {
-        let max = run.iter().fold(f32::NEG_INFINITY, |m, &v| m.max(v));
-        let mut sum = 0.0f32;
-        for v in run.iter_mut() {
-            *v = (*v - max).exp();
-            sum += *v;
-        }
-        for v in run.iter_mut() {
-            *v /= sum;
         }
     }
 }

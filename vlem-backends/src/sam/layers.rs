@@ -67,7 +67,7 @@ impl Module for LayerNorm2d {
 
 /// Exact GELU (PyTorch's `nn.GELU()` default).
 pub fn gelu(xs: &Tensor) -> Result<Tensor> {
-    xs.gelu_erf()
+    crate::kernels::gelu_erf(xs)
 }
 
 /// A PyTorch `Conv2d` + `BatchNorm2d` pair (TinyViT's `Conv2d_BN`, names `c.weight` and
@@ -98,7 +98,7 @@ pub fn conv2d_bn(
 
 /// Softmax over the last dimension.
 pub fn softmax_last(xs: &Tensor) -> Result<Tensor> {
-    candle_nn::ops::softmax_last_dim(xs)
+    crate::kernels::softmax_last_dim(xs)
 }
 
 /// Concatenates along the last dimension.
