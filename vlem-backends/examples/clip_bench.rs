@@ -21,11 +21,11 @@ fn main() {
 fn main() -> anyhow::Result<()> {
     use std::time::Instant;
 
-    // As the `vlem` binary runs the models.
-    vlem_backends::keep_freed_memory();
-
     use anyhow::{Context, bail};
     use vlem_backends::clip::ClipModel;
+
+    // As the `vlem` binary runs the models.
+    vlem_backends::keep_freed_memory();
 
     let mut dir = None;
     let mut batches = Vec::new();

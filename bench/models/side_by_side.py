@@ -1,0 +1,107 @@
+#!/usr/bin/env python3
+"""Every model stage per 640x480 frame in vlem and in its reference implementation, in one run:
+one JSON line per model with both times and the ratio (reference / vlem: above 1 is vlem ahead).
+
+Full-size architectures with random weights (speed does not depend on the values), same inputs on
+both sides, best of REPEAT calls after a warm-up. Run through `bench/models/side_by_side.sh`,
+which builds the vlem side; the reference side runs in the virtualenv of PYTHON.
+
+Models (default: all but the slow SAM rows, which `bench/sam/side_by_side.sh` also gives):
+  clip-1, clip-32   CLIP ViT-B/16 image tower, one crop / a batch of 32 crops (transformers)
+  dinov3            ViT-L/16 + dino.txt vision head at short side 448 (transformers + Meta's head)
+  naradio-b, -l     RADIOv2.5 B/16, L/16 trunk + NACLIP + adaptor in vlem; timm's trunk in PyTorch
+  sam-mobile, sam-vit-b  the automatic mask generator at 16² points (mobile_sam, segment-anything)
+"""
+
+import argparse
+import json
+import os
+import re
+import subprocess
+import sys
+
+ROOT = os.path.dirname(os.path.dirname(os.path.dirname(os.path.abspath(__file__))))
+EXAMPLES = os.path.join(ROOT, "target", "release", "examples")
+
+
+def run(cmd, threads, env=None):
+    e = dict(os.environ, RAYON_NUM_THREADS=str(threads), **(env or {}))
+    out = subprocess.run(cmd, cwd=ROOT, env=e, capture_output=True, text=True)
+    if out.returncode != 0:
+        sys.exit(f"{' '.join(cmd)} failed:\n{out.stdout}\n{out.stderr}")
+    return out.stdout
+
+
+def find(pattern, text, what):
+    m = re.search(pattern, text)
+    if not m:
+        sys.exit(f"no {what} in:\n{text}")
+    return float(m.group(1))
+
+
+def clip(py, threads, repeat, batch):
+    model = "/tmp/clip-vit-b16-random"
+    if not os.path.exists(os.path.join(model, "model.safetensors")):
+        run([py, "bench/clip/make_random_b16.py", model], threads)
+    ours = run([os.path.join(EXAMPLES, "clip_bench"), model, "--batch", str(batch),
+                "--repeat", str(repeat)], threads)
+    ref = run([py, "bench/clip/torch_bench.py", model, "--threads", str(threads), "--batch",
+               str(batch), "--repeat", str(repeat)], threads)
+    pat = rf"batch={batch}: best (\d+) ms/call"
+    return find(pat, ours, "vlem time"), "transformers CLIPModel", find(pat, ref, "torch time")
+
+
+def dinov3(py, threads, repeat):
+    ours = run([os.path.join(EXAMPLES, "dinov3_bench"), "448", str(repeat)], threads)
+    ref = run([py, "bench/dinov3/torch_bench.py", "--threads", str(threads), "--repeat",
+               str(repeat)], threads)
+    return (find(r"(\d+) ms/frame", ours, "vlem time"), "transformers DINOv3ViTModel + dino.txt head",
+            find(r"best (\d+) ms/frame", ref, "torch time"))
+
+
+def naradio(py, threads, repeat, size):
+    ours = run([os.path.join(EXAMPLES, "naradio_bench"), size, str(repeat)], threads)
+    ref = run([py, "bench/naradio/torch_bench.py", "--threads", str(threads), "--model", size,
+               "--repeat", str(repeat)], threads)
+    return (find(r"(\d+) ms/frame", ours, "vlem time"), "timm ViT trunk (no NACLIP, no adaptor)",
+            find(r"best (\d+) ms/frame", ref, "torch time"))
+
+
+def sam(py, threads, variant):
+    out = run(["bench/sam/side_by_side.sh", "--threads", str(threads), variant], threads,
+              env={"PYTHON": py})
+    row = json.loads(out.strip().splitlines()[-1])
+    return row["vlem_generator_s"] * 1e3, row["reference"], row["reference_generator_s"] * 1e3
+
+
+MODELS = {
+    "clip-1": lambda py, t, r: clip(py, t, r, 1),
+    "clip-32": lambda py, t, r: clip(py, t, r, 32),
+    "dinov3": dinov3,
+    "naradio-b": lambda py, t, r: naradio(py, t, r, "b"),
+    "naradio-l": lambda py, t, r: naradio(py, t, r, "l"),
+    "sam-mobile": lambda py, t, r: sam(py, t, "mobile-sam"),
+    "sam-vit-b": lambda py, t, r: sam(py, t, "vit-b"),
+}
+
+
+def main():
+    ap = argparse.ArgumentParser()
+    ap.add_argument("--threads", type=int, nargs="+", default=[1, 2])
+    ap.add_argument("--repeat", type=int, default=2)
+    ap.add_argument("models", nargs="*", default=["clip-1", "clip-32", "dinov3", "naradio-b",
+                                                  "naradio-l"])
+    a = ap.parse_args()
+    py = os.environ.get("PYTHON", os.path.join(ROOT, "bench", ".venv-torch", "bin", "python"))
+    for name in a.models:
+        if name not in MODELS:
+            sys.exit(f"unknown model {name}; known: {', '.join(MODELS)}")
+        for t in a.threads:
+            ours, ref_name, ref = MODELS[name](py, t, a.repeat)
+            print(json.dumps({"model": name, "threads": t, "vlem_ms": round(ours),
+                              "reference": ref_name, "reference_ms": round(ref),
+                              "ratio_reference_over_vlem": round(ref / ours, 2)}), flush=True)
+
+
+if __name__ == "__main__":
+    main()
