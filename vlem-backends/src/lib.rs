@@ -59,12 +59,13 @@ pub mod minilm;
 pub mod clip;
 
 // Always compiled: the shared preprocessing of the segment encoders (clip, onnx) and of the patch
-// encoders (onnx, dinov3, naradio), the prompt templates of every text side, and the model file
-// lookups of every backend that loads files.
+// encoders (onnx, dinov3, naradio), the prompt templates and text embedding cache of the text
+// sides, and the model file lookups of every backend that loads files.
 pub mod model_files;
 pub mod patch_input;
 pub mod prompts;
 pub mod segment_crops;
+pub mod text_cache;
 
 #[cfg(feature = "graph")]
 pub mod graph;

@@ -313,6 +313,21 @@ fn label_embeddings_match_rayfronts() {
     );
 }
 
+/// A query asked again comes from the cache: the same unit vector as the first time, which is
+/// the normalised template mean of `label_embeddings`.
+#[test]
+fn repeated_queries_give_the_same_embedding() {
+    let enc = tiny_encoder();
+    let first = enc.encode_text("red sofa").unwrap();
+    let again = enc.encode_text("red sofa").unwrap();
+    assert_eq!(first, again);
+    let mean = enc.label_embeddings(&["red sofa"]).unwrap().concat();
+    let n = mean.iter().map(|v| v * v).sum::<f32>().sqrt();
+    let unit: Vec<f32> = mean.iter().map(|v| v / n).collect();
+    assert_close("cached query", &again, &unit);
+    assert_ne!(enc.encode_text("blue chair").unwrap(), first);
+}
+
 /// The encoder on a 64 x 64 image whose pixels are the goldens' input rounded to 8 bits: the
 /// patch grid is the golden's up to that rounding.
 #[test]
