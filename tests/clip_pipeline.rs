@@ -60,6 +60,35 @@ fn shipped_config_builds_every_stage_through_the_registry() {
     assert_eq!(pipeline.map().unwrap().dim(), 16);
 }
 
+/// The real-time CPU config: every stage but the encoder builds with its keys, and the encoder
+/// asks for the model folder it names (no CLIP weights ship with the repository), unless the
+/// tiny test model is swapped in.
+#[test]
+fn realtime_cpu_config_builds_with_a_model_folder() {
+    let mut config = Config::from_file(&configs().join("realtime-cpu-clip.toml")).unwrap();
+    let ctx = BuildContext {
+        config_dir: configs(),
+        embedding_dim: None,
+    };
+    let registry = Registry::global().unwrap();
+    registry
+        .build_proposer(config.proposer.as_ref().unwrap(), &ctx)
+        .unwrap();
+    let err = registry
+        .build_encoder(config.encoder.as_ref().unwrap(), &ctx)
+        .err()
+        .unwrap()
+        .to_string();
+    assert!(err.contains("clip-vit-base-patch16"), "{err}");
+    let encoder = config.encoder.as_mut().unwrap();
+    encoder.params.insert(
+        "model_dir".into(),
+        "../vlem-backends/goldens/clip/tiny-quick-gelu".into(),
+    );
+    let pipeline = Pipeline::from_config(&config, &ctx).unwrap();
+    assert_eq!(pipeline.encoder().unwrap().name(), "clip");
+}
+
 #[test]
 fn one_frame_maps_exactly_the_pixels_inside_regions() {
     let (config, ctx) = config(1);
