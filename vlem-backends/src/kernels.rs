@@ -115,6 +115,22 @@ pub fn gelu_erf_in_place(xs: &mut [f32]) {
     }
 }
 
+/// LayerNorm of one row in place, as candle and PyTorch compute it: the mean, the centred values,
+/// the mean of their squares, division by `√(var + eps)`, then `weight` and `bias`.
+pub fn layer_norm_in_place(row: &mut [f32], weight: &[f32], bias: &[f32], eps: f32) {
+    let n = row.len().max(1) as f32;
+    let mean = row.iter().sum::<f32>() / n;
+    let mut var = 0.0f32;
+    for v in row.iter_mut() {
+        *v -= mean;
+        var += *v * *v;
+    }
+    let root = (var / n + eps).sqrt();
+    for ((v, w), b) in row.iter_mut().zip(weight).zip(bias) {
+        *v = *v / root * w + b;
+    }
+}
+
 /// `eˣ` in f32 without a call, so loops over it vectorise: `x = n·ln 2 + r` with `|r| ≤ ln 2 / 2`,
 /// `eʳ` by its degree-7 Taylor polynomial (truncation below 2e-9 relative), `2ⁿ` built in the
 /// exponent bits. Relative error within a few ulp (the test measures it); inputs are clamped to

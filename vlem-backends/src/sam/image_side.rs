@@ -23,7 +23,7 @@ use candle_nn::{LayerNorm, Linear};
 use rayon::prelude::*;
 
 use super::decoder::{EMBED_DIM, GRID};
-use crate::kernels::{matmul, softmax_runs};
+use crate::kernels::{layer_norm_in_place, matmul, softmax_runs};
 
 /// Attention heads of the decoder's attentions.
 const HEADS: usize = 8;
@@ -87,6 +87,21 @@ impl Scratch {
             sums: Vec::new(),
             update: Vec::new(),
         }
+    }
+}
+
+impl Scratch {
+    /// Fills `moved` and `offsets` with `proj` moved onto the `t` projected tokens `side` (see
+    /// [`move_projection`], scaled by the attention's `1/√head_dim`); returns their column count
+    /// `8T`.
+    fn move_onto(&mut self, proj: &Projection, side: &[f32], t: usize) -> usize {
+        let cols = HEADS * t;
+        let scale = 1.0 / ((proj.out / HEADS) as f32).sqrt();
+        let moved = sized(&mut self.moved, EMBED_DIM * cols);
+        let offsets = sized(&mut self.offsets, cols);
+        let rows = sized(&mut self.moved_rows, cols * EMBED_DIM);
+        move_projection(proj, side, t, scale, (moved, rows, offsets));
+        cols
     }
 }
 
@@ -164,12 +179,8 @@ impl TokenToImage {
     ) -> Vec<f32> {
         let internal = self.k.out;
         let hd = internal / HEADS;
-        let cols = HEADS * t;
-        let scale = 1.0 / (hd as f32).sqrt();
-        let moved = sized(&mut s.moved, EMBED_DIM * cols);
-        let offsets = sized(&mut s.offsets, cols);
-        let rows = sized(&mut s.moved_rows, cols * EMBED_DIM);
-        move_projection(&self.k, q, t, scale, (moved, rows, offsets));
+        let cols = s.move_onto(&self.k, q, t);
+        let (moved, offsets) = (&s.moved[..], &s.offsets[..]);
         let x = sized(&mut s.x, TOKENS * EMBED_DIM);
         for ((x, k), p) in x.iter_mut().zip(keys).zip(pe) {
             *x = k + p;
@@ -246,12 +257,8 @@ impl ImageToToken {
     ) {
         let internal = self.q.out;
         let hd = internal / HEADS;
-        let cols = HEADS * t;
-        let scale = 1.0 / (hd as f32).sqrt();
-        let moved = sized(&mut s.moved, EMBED_DIM * cols);
-        let offsets = sized(&mut s.offsets, cols);
-        let rows = sized(&mut s.moved_rows, cols * EMBED_DIM);
-        move_projection(&self.q, k, t, scale, (moved, rows, offsets));
+        let cols = s.move_onto(&self.q, k, t);
+        let (moved, offsets) = (&s.moved[..], &s.offsets[..]);
         // Each (head, token) value through its head's columns of the output projection.
         let through = sized(&mut s.sums, cols * EMBED_DIM);
         through.fill(0.0);
@@ -294,16 +301,7 @@ impl ImageToToken {
                 for ((k, u), b) in row.iter_mut().zip(upd).zip(&self.o.bias) {
                     *k += u + b;
                 }
-                let mean = row.iter().sum::<f32>() / EMBED_DIM as f32;
-                let mut var = 0.0f32;
-                for k in row.iter_mut() {
-                    *k -= mean;
-                    var += *k * *k;
-                }
-                let root = (var / EMBED_DIM as f32 + self.eps).sqrt();
-                for ((k, w), b) in row.iter_mut().zip(&self.norm_weight).zip(&self.norm_bias) {
-                    *k = *k / root * w + b;
-                }
+                layer_norm_in_place(row, &self.norm_weight, &self.norm_bias, self.eps);
             }
         }
     }

@@ -14,7 +14,7 @@ use candle_core::{Result, Tensor};
 use rayon::prelude::*;
 
 use super::decoder::{EMBED_DIM, GRID};
-use crate::kernels::{gelu_erf_in_place, matmul};
+use crate::kernels::{gelu_erf_in_place, layer_norm_in_place, matmul};
 
 /// Channels after the first transposed convolution.
 const MID: usize = EMBED_DIM / 4;
@@ -131,22 +131,12 @@ impl FusedMaskHead {
             hyper,
         } = band;
         matmul(rows, &self.w1, first, (BAND, EMBED_DIM, 4 * MID));
-        // LayerNorm2d over each first-level pixel's channels, as the candle chain computes it:
-        // mean, centred values, mean of their squares, divide by the root, then gain and bias.
+        // LayerNorm2d over each first-level pixel's channels.
         for pixel in first.chunks_exact_mut(MID) {
             for (v, b) in pixel.iter_mut().zip(&self.b1) {
                 *v += b;
             }
-            let mean = pixel.iter().sum::<f32>() / MID as f32;
-            let mut var = 0.0f32;
-            for v in pixel.iter_mut() {
-                *v -= mean;
-                var += *v * *v;
-            }
-            let root = (var / MID as f32 + self.ln_eps).sqrt();
-            for ((v, w), b) in pixel.iter_mut().zip(&self.ln_weight).zip(&self.ln_bias) {
-                *v = *v / root * w + b;
-            }
+            layer_norm_in_place(pixel, &self.ln_weight, &self.ln_bias, self.ln_eps);
         }
         gelu_erf_in_place(first);
         matmul(first, &self.w2, second, (BAND * 4, MID, 4 * OUT));
