@@ -5,9 +5,10 @@
 //! where most of the proposer's time goes on a CPU. It follows the reference module by module
 //! (same tensor names), with one change of evaluation order that does not change the result:
 //! the first transformer layer's image-side projections are computed once and broadcast over the
-//! batch of prompts, since every prompt sees the same image embedding there. On the CPU the output
-//! upscaling and the hypernetwork product run fused ([`super::mask_head`]); elsewhere as candle
-//! ops.
+//! batch of prompts, since every prompt sees the same image embedding there. On the CPU the later
+//! cross attentions' image side, the output upscaling and the hypernetwork product run fused, per
+//! prompt ([`super::image_side`], [`super::mask_head`]: same arithmetic, reassociated, so equal
+//! within rounding); elsewhere every step is a candle op.
 
 use candle_core::{Module, Result, Tensor};
 use candle_nn::{LayerNorm, Linear, VarBuilder};
