@@ -19,9 +19,9 @@
 pub const KEEP_FREED_MEMORY_ENV: &str = "VLEM_KEEP_FREED_MEMORY";
 
 /// Raises glibc's `mmap` threshold to 1 GiB and its trim threshold to 2 GiB, so that freed
-/// model buffers are reused instead of being returned to the kernel and faulted in again; see the
-/// [module documentation](self). Returns whether the allocator took both settings (`false` with
-/// another C library, or when `VLEM_KEEP_FREED_MEMORY=0`).
+/// model buffers are reused instead of being returned to the kernel and faulted in again (why:
+/// `vlem-backends/src/allocator.rs`). Returns whether the allocator took both settings (`false`
+/// with another C library, or when `VLEM_KEEP_FREED_MEMORY=0`). The process keeps its peak heap.
 pub fn keep_freed_memory() -> bool {
     if std::env::var_os(KEEP_FREED_MEMORY_ENV).is_some_and(|v| v == "0") {
         return false;

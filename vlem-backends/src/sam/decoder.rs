@@ -7,7 +7,7 @@
 //! the first transformer layer's image-side projections are computed once and broadcast over the
 //! batch of prompts, since every prompt sees the same image embedding there. On the CPU the later
 //! cross attentions' image side, the output upscaling and the hypernetwork product run fused, per
-//! prompt ([`super::image_side`], [`super::mask_head`]: same arithmetic, reassociated, so equal
+//! prompt (modules `image_side`, `mask_head`: same arithmetic, reassociated, so equal
 //! within rounding); elsewhere every step is a candle op.
 
 use candle_core::{Module, Result, Tensor};
