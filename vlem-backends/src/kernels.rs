@@ -11,9 +11,10 @@
 //! [`softmax_last_dim`], which run these loops on both cores for f32 CPU tensors and are candle's
 //! own ops on every other device and dtype (so model code stays device-generic).
 //!
-//! `unsafe` lives here alone (the workspace denies it elsewhere): [`matmul`] calls the `gemm`
-//! crate, candle's own CPU matrix product, whose entry point takes raw pointers and strides. The
-//! wrapper checks every length before the call, so the pointers always cover the matrices.
+//! `unsafe` here (the workspace denies it elsewhere; the crate's only other place is the two
+//! `mallopt` calls of `allocator.rs`): [`matmul`] calls the `gemm` crate, candle's own CPU matrix
+//! product, whose entry point takes raw pointers and strides. The wrapper checks every length
+//! before the call, so the pointers always cover the matrices.
 
 /// `out = lhs · rhs` for row-major `lhs` (`m × k`), `rhs` (`k × n`) and `out` (`m × n`), on the
 /// calling thread (callers parallelise over independent products).

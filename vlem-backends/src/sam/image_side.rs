@@ -56,7 +56,8 @@ impl Projection {
 }
 
 /// Per-thread buffers of one prompt's attention.
-pub(crate) struct Scratch {
+#[derive(Default)]
+struct Scratch {
     /// `(256, 8T)`: the token side moved through the image-side projection.
     moved: Vec<f32>,
     /// `(8T, 256)`: the same, transposed.
@@ -73,21 +74,6 @@ pub(crate) struct Scratch {
     sums: Vec<f32>,
     /// A band's attention output, `(rows, 256)`.
     update: Vec<f32>,
-}
-
-impl Scratch {
-    pub(crate) fn new() -> Self {
-        Self {
-            moved: Vec::new(),
-            moved_rows: Vec::new(),
-            offsets: Vec::new(),
-            x: Vec::new(),
-            scores: Vec::new(),
-            transposed: Vec::new(),
-            sums: Vec::new(),
-            update: Vec::new(),
-        }
-    }
 }
 
 impl Scratch {
@@ -169,14 +155,7 @@ impl TokenToImage {
     /// One prompt's attention output before the output projection, `(T, internal)`, for its
     /// projected token queries `q` (`(T, internal)`), image tokens `keys` and the positional
     /// encoding `pe` (both `(4096, 256)`).
-    pub(crate) fn attend(
-        &self,
-        keys: &[f32],
-        pe: &[f32],
-        q: &[f32],
-        t: usize,
-        s: &mut Scratch,
-    ) -> Vec<f32> {
+    fn attend(&self, keys: &[f32], pe: &[f32], q: &[f32], t: usize, s: &mut Scratch) -> Vec<f32> {
         let internal = self.k.out;
         let hd = internal / HEADS;
         let cols = s.move_onto(&self.k, q, t);
@@ -219,9 +198,9 @@ impl TokenToImage {
 #[derive(Debug)]
 pub(crate) struct ImageToToken {
     q: Projection,
-    o: Projection,
-    /// The output projection's weight transposed, `(internal, 256)`.
+    /// The output projection's weight transposed, `(internal, 256)`, and its bias.
     o_columns: Vec<f32>,
+    o_bias: Vec<f32>,
     norm_weight: Vec<f32>,
     norm_bias: Vec<f32>,
     eps: f32,
@@ -232,8 +211,8 @@ impl ImageToToken {
         let vec = |t: &Tensor| t.to_vec1::<f32>();
         Ok(Self {
             q: Projection::new(q)?,
-            o: Projection::new(o)?,
             o_columns: o.weight().t()?.flatten_all()?.to_vec1::<f32>()?,
+            o_bias: Projection::new(o)?.bias,
             norm_weight: vec(norm.weight())?,
             norm_bias: match norm.bias() {
                 Some(b) => vec(b)?,
@@ -246,7 +225,7 @@ impl ImageToToken {
     /// Updates one prompt's image tokens `keys` (`(4096, 256)`) in place:
     /// `keys ← norm(keys + attention)`, the image tokens (plus `pe`) attending to the prompt's
     /// projected token keys `k` and values `v` (both `(T, internal)`).
-    pub(crate) fn update(
+    fn update(
         &self,
         keys: &mut [f32],
         pe: &[f32],
@@ -298,7 +277,7 @@ impl ImageToToken {
                 .chunks_exact_mut(EMBED_DIM)
                 .zip(update.chunks_exact(EMBED_DIM))
             {
-                for ((k, u), b) in row.iter_mut().zip(upd).zip(&self.o.bias) {
+                for ((k, u), b) in row.iter_mut().zip(upd).zip(&self.o_bias) {
                     *k += u + b;
                 }
                 layer_norm_in_place(row, &self.norm_weight, &self.norm_bias, self.eps);
@@ -325,7 +304,7 @@ pub(crate) fn token_to_image(
     let outs: Vec<Vec<f32>> = keys
         .par_chunks(TOKENS * EMBED_DIM)
         .zip(q_values.par_chunks(t * internal))
-        .map_init(Scratch::new, |s, (keys, q)| {
+        .map_init(Scratch::default, |s, (keys, q)| {
             attention.attend(keys, pe, q, t, s)
         })
         .collect();
@@ -346,7 +325,7 @@ pub(crate) fn image_to_token(
     keys.par_chunks_mut(TOKENS * EMBED_DIM)
         .zip(k_values.par_chunks(t * internal))
         .zip(v_values.par_chunks(t * internal))
-        .for_each_init(Scratch::new, |s, ((keys, k), v)| {
+        .for_each_init(Scratch::default, |s, ((keys, k), v)| {
             attention.update(keys, pe, k, v, t, s);
         });
     Ok(())
