@@ -89,6 +89,34 @@ fn realtime_cpu_config_builds_with_a_model_folder() {
     assert_eq!(pipeline.encoder().unwrap().name(), "clip");
 }
 
+/// The real-time GPU config: in a build without `cuda` the encoder says so and how to get one;
+/// on the CPU (its device key switched) it builds as it is.
+#[test]
+fn realtime_cuda_config_asks_for_the_gpu_it_names() {
+    let mut config = Config::from_file(&configs().join("realtime-cuda-clip.toml")).unwrap();
+    let ctx = BuildContext {
+        config_dir: configs(),
+        embedding_dim: None,
+    };
+    let encoder = config.encoder.as_mut().unwrap();
+    encoder.params.insert(
+        "model_dir".into(),
+        "../vlem-backends/goldens/clip/tiny-quick-gelu".into(),
+    );
+    if !cfg!(feature = "cuda") {
+        let err = Pipeline::from_config(&config, &ctx)
+            .err()
+            .unwrap()
+            .to_string();
+        assert!(err.contains("device = \"cuda:0\" was asked for"), "{err}");
+        assert!(err.contains("--features cuda"), "{err}");
+    }
+    let encoder = config.encoder.as_mut().unwrap();
+    encoder.params.insert("device".into(), "cpu".into());
+    let pipeline = Pipeline::from_config(&config, &ctx).unwrap();
+    assert_eq!(pipeline.encoder().unwrap().name(), "clip");
+}
+
 #[test]
 fn one_frame_maps_exactly_the_pixels_inside_regions() {
     let (config, ctx) = config(1);

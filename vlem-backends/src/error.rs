@@ -64,6 +64,17 @@ pub enum BackendError {
         #[source]
         source: Box<dyn std::error::Error + Send + Sync>,
     },
+    /// The configured `device` cannot run a model here (see `ComputeDevice::open`): no `cuda`
+    /// feature in this build, no driver or GPU, or kernels compiled for another GPU.
+    #[error("device = \"{asked}\" was asked for, but {found}; {hint}")]
+    DeviceUnavailable {
+        /// The device the configuration named, e.g. "cuda:1".
+        asked: String,
+        /// What was found instead.
+        found: String,
+        /// What to do about it.
+        hint: String,
+    },
     /// An encoder that embeds ground-truth labels was asked to embed a bare image.
     #[error(
         "this encoder embeds the ground-truth class labels of a frame and cannot embed a bare \

@@ -25,6 +25,7 @@
 //! kind = "label-text"
 //! # model_dir = "models/all-MiniLM-L6-v2" # else $VLEM_MINILM_DIR, else the pip package
 //! # templates = ["{}", "a photo of a {}"]   # default: the text alone
+//! # device = "cpu"                        # "cuda", "cuda:N" with feature `cuda`
 //! ```
 
 use std::collections::HashMap;
@@ -58,6 +59,9 @@ pub struct LabelTextConfig {
     /// Prompt templates, each with one `{}` that the text replaces; a text (query or class name)
     /// is embedded as the normalised mean over the templates. Default: `["{}"]`, the text alone.
     pub templates: Vec<String>,
+    /// Where the sentence encoder runs: `"cpu"` (default), `"cuda"` or `"cuda:N"` (feature
+    /// `cuda`).
+    pub device: crate::ComputeDevice,
 }
 
 impl Default for LabelTextConfig {
@@ -65,6 +69,7 @@ impl Default for LabelTextConfig {
         Self {
             model_dir: None,
             templates: crate::prompts::default_templates(),
+            device: crate::ComputeDevice::Cpu,
         }
     }
 }
@@ -95,11 +100,12 @@ impl LabelTextEncoder {
     /// Builds the encoder from its parameters: finds and loads the model, checks the templates.
     ///
     /// # Errors
-    /// As [`crate::minilm::locate_model_dir`], [`SentenceEncoder::load`] and
-    /// [`LabelTextEncoder::new`].
+    /// As [`crate::ComputeDevice::open`], [`crate::minilm::locate_model_dir`],
+    /// [`SentenceEncoder::load`] and [`LabelTextEncoder::new`].
     pub fn from_config(config: LabelTextConfig, ctx: &BuildContext) -> Result<Self, BackendError> {
         let model_dir = config.model_dir.as_deref().map(|p| ctx.resolve(p));
-        let sentence = SentenceEncoder::locate_and_load(model_dir.as_deref())?;
+        let sentence =
+            SentenceEncoder::locate_and_load(model_dir.as_deref(), &config.device.open()?)?;
         Self::new(sentence, config.templates)
     }
 

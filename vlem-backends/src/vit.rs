@@ -42,14 +42,25 @@ impl Activation {
     }
 }
 
-/// Named tensors with checked shapes, widened to f32: the loading side of every module here.
+/// Named tensors with checked shapes, widened to f32 and put on the model's device: the loading
+/// side of every module here.
 pub(crate) struct Weights {
     tensors: HashMap<String, Tensor>,
+    device: Device,
 }
 
 impl Weights {
-    pub(crate) fn new(tensors: HashMap<String, Tensor>) -> Self {
-        Self { tensors }
+    /// `tensors` (on any device), handed out on `device`.
+    pub(crate) fn new(tensors: HashMap<String, Tensor>, device: &Device) -> Self {
+        Self {
+            tensors,
+            device: device.clone(),
+        }
+    }
+
+    /// The device the tensors are handed out on.
+    pub(crate) fn device(&self) -> &Device {
+        &self.device
     }
 
     pub(crate) fn contains(&self, name: &str) -> bool {
@@ -74,6 +85,7 @@ impl Weights {
             ));
         }
         t.to_dtype(DType::F32)
+            .and_then(|t| t.to_device(&self.device))
             .map_err(|e| format!("tensor {name}: {e}"))
     }
 

@@ -11,6 +11,8 @@
 //! Run in release (`cargo test --release`): candle in a debug build is many times slower.
 #![cfg(feature = "clip")]
 
+mod common;
+
 use std::path::{Path, PathBuf};
 use std::sync::OnceLock;
 
@@ -24,7 +26,9 @@ use vlem_core::{BuildContext, Encoder, PixelRect, Region, Registry, RgbImage, St
 const GOLDENS: &str = include_str!("../goldens/clip/clip_goldens.json");
 
 /// Largest accepted difference of any component from `transformers`.
-const TOLERANCE: f32 = 1e-4;
+fn tolerance() -> f32 {
+    common::tolerance(1e-4)
+}
 
 #[derive(Deserialize)]
 struct Goldens {
@@ -107,7 +111,7 @@ fn normalised(v: &[f32]) -> Vec<f32> {
 /// Checks one model against its goldens and returns the worst error seen.
 fn check_model(name: &str) -> f32 {
     let g = &goldens().models[name];
-    let model = ClipModel::load(&model_dir(name)).unwrap();
+    let model = ClipModel::load(&model_dir(name), &common::device()).unwrap();
     let config = model.config();
     assert_eq!(model.projection_dim(), g.projection_dim);
     assert_eq!(config.text.eos_token_id, g.eos_token_id_in_config);
@@ -159,19 +163,19 @@ fn check_model(name: &str) -> f32 {
 #[test]
 fn quick_gelu_model_with_legacy_eos_matches_transformers() {
     let worst = check_model("tiny-quick-gelu");
-    assert!(worst <= TOLERANCE, "worst error {worst:e}");
+    assert!(worst <= tolerance(), "worst error {worst:e}");
 }
 
 #[test]
 fn gelu_model_with_real_eos_matches_transformers() {
     let worst = check_model("tiny-gelu");
-    assert!(worst <= TOLERANCE, "worst error {worst:e}");
+    assert!(worst <= tolerance(), "worst error {worst:e}");
 }
 
 #[test]
 fn goldens_exercise_truncation_and_the_end_token() {
     let g = &goldens().models["tiny-gelu"];
-    let model = ClipModel::load(&model_dir("tiny-gelu")).unwrap();
+    let model = ClipModel::load(&model_dir("tiny-gelu"), &common::device()).unwrap();
     let max = model.config().text.max_position_embeddings;
     let long = g.texts.iter().map(|t| t.ids.len()).max().unwrap();
     assert_eq!(
@@ -187,14 +191,18 @@ fn goldens_exercise_truncation_and_the_end_token() {
 
 #[test]
 fn image_features_refuse_a_wrong_pixel_count() {
-    let model = ClipModel::load(&model_dir("tiny-gelu")).unwrap();
+    let model = ClipModel::load(&model_dir("tiny-gelu"), &common::device()).unwrap();
     let err = model.image_features(&[0.0; 10], 1).unwrap_err().to_string();
     assert!(err.contains("10 values for 1 image(s) of 3x32x32"), "{err}");
     assert!(model.image_features(&[], 0).unwrap().is_empty());
 }
 
 fn encoder_with(name: &str, extra: &str) -> ClipEncoder {
-    let params: toml::Table = toml::from_str(&format!("model_dir = \"{name}\"\n{extra}")).unwrap();
+    let params: toml::Table = toml::from_str(&format!(
+        "model_dir = \"{name}\"\n{}\n{extra}",
+        common::device_line()
+    ))
+    .unwrap();
     let config: ClipEncoderConfig =
         vlem_core::parse_params(vlem_core::StageKind::Encoder, "clip", &params).unwrap();
     let ctx = BuildContext {
@@ -275,8 +283,10 @@ fn text_embedding_is_the_normalised_projection_and_templates_average() {
     assert!(max_abs_diff(&got, &normalised(&prompts[0])) > 1e-3);
     // Several texts at once give what each gives alone.
     let both = templated.embed_texts(&["chair", "lamp"]).unwrap();
-    assert!(max_abs_diff(&both[0], &got) < 1e-5);
-    assert!(max_abs_diff(&both[1], &templated.encode_text("lamp").unwrap()) < 1e-5);
+    assert!(max_abs_diff(&both[0], &got) < common::tolerance(1e-5));
+    assert!(
+        max_abs_diff(&both[1], &templated.encode_text("lamp").unwrap()) < common::tolerance(1e-5)
+    );
 }
 
 /// A 40x30 image with a left and right half of different colours and some texture.
@@ -326,9 +336,9 @@ fn regions_get_their_crop_embedding_and_the_smaller_region_wins() {
 
     let mut out = vec![0.0; 16];
     assert!(e.embedding_at(1, 1, &mut out));
-    assert!(max_abs_diff(&out, &big) < 1e-5);
+    assert!(max_abs_diff(&out, &big) < common::tolerance(1e-5));
     assert!(e.embedding_at(7, 7, &mut out), "inside both: the small one");
-    assert!(max_abs_diff(&out, &small) < 1e-5);
+    assert!(max_abs_diff(&out, &small) < common::tolerance(1e-5));
     assert!(!e.has_embedding(30, 10), "outside every region");
 }
 
@@ -351,13 +361,16 @@ fn batch_size_does_not_change_the_embeddings() {
         let a = one.embed_crops(&pixels, regions.len()).unwrap();
         let b = many.embed_crops(&pixels, regions.len()).unwrap();
         assert_eq!(a.len(), 5 * 16);
-        assert!(max_abs_diff(&a, &b) < 1e-5, "{background}");
+        assert!(
+            max_abs_diff(&a, &b) < common::tolerance(1e-5),
+            "{background}"
+        );
         let ea = one.encode_image(&image, &regions).unwrap();
         let eb = many.encode_image(&image, &regions).unwrap();
         let (mut x, mut y) = (vec![0.0; 16], vec![0.0; 16]);
         for (u, v) in [(1, 1), (10, 5), (30, 14), (39, 29)] {
             assert_eq!(ea.embedding_at(u, v, &mut x), eb.embedding_at(u, v, &mut y));
-            assert!(max_abs_diff(&x, &y) < 1e-5);
+            assert!(max_abs_diff(&x, &y) < common::tolerance(1e-5));
         }
     }
 }
@@ -433,6 +446,23 @@ fn registry_builds_clip_and_refuses_bad_parameters() {
     assert!(m.contains("at least one template"), "{m}");
     let m = message("model_dir = \"tiny-gelu\"\nbackground = \"blurred\"");
     assert!(m.contains("blurred"), "{m}");
+    let m = message("model_dir = \"tiny-gelu\"\ndevice = \"gpu\"");
+    assert!(m.contains("\"gpu\"") && m.contains("cuda:N"), "{m}");
+}
+
+#[cfg(not(feature = "cuda"))]
+#[test]
+fn asking_for_a_gpu_in_a_build_without_cuda_says_how_to_get_one() {
+    let m = match build_through_registry("model_dir = \"tiny-gelu\"\ndevice = \"cuda:1\"") {
+        Ok(_) => panic!("a GPU was opened without the cuda feature"),
+        Err(e) => e.to_string(),
+    };
+    assert!(m.starts_with("encoder `clip`"), "{m}");
+    assert!(m.contains("device = \"cuda:1\" was asked for"), "{m}");
+    assert!(
+        m.contains("no CUDA support") && m.contains("--features cuda"),
+        "{m}"
+    );
 }
 
 #[test]
@@ -488,7 +518,9 @@ fn weights_that_disagree_with_the_config_are_an_invalid_model_file() {
     let mut json: serde_json::Value = serde_json::from_str(&config).unwrap();
     json["vision_config"]["num_hidden_layers"] = 2.into();
     std::fs::write(dir.path().join("config.json"), json.to_string()).unwrap();
-    let err = ClipModel::load(dir.path()).unwrap_err().to_string();
+    let err = ClipModel::load(dir.path(), &common::device())
+        .unwrap_err()
+        .to_string();
     assert!(err.contains("model.safetensors"), "{err}");
     assert!(err.contains("do not match config.json"), "{err}");
 }

@@ -11,6 +11,8 @@
 //! goldens, parameters, file lookup and the shared conformance suite).
 #![cfg(feature = "dinov3")]
 
+mod common;
+
 use std::collections::HashMap;
 use std::path::{Path, PathBuf};
 
@@ -22,7 +24,9 @@ use vlem_backends::dinov3::encoder::locate_files;
 use vlem_backends::dinov3::{DinoTxtHeads, Dinov3Backbone, Dinov3Encoder, Dinov3EncoderConfig};
 use vlem_core::{BuildContext, Encoder, RgbImage};
 
-const TOLERANCE: f32 = 1e-4;
+fn tolerance() -> f32 {
+    common::tolerance(1e-4)
+}
 
 fn goldens_dir() -> PathBuf {
     Path::new(env!("CARGO_MANIFEST_DIR")).join("goldens/dinov3")
@@ -45,7 +49,7 @@ fn pixels(height: usize, width: usize) -> Tensor {
             }
         }
     }
-    Tensor::from_vec(v, (1, 3, height, width), &Device::Cpu).unwrap()
+    Tensor::from_vec(v, (1, 3, height, width), &common::device()).unwrap()
 }
 
 fn max_abs_diff(a: &[f32], b: &[f32]) -> f32 {
@@ -66,7 +70,7 @@ fn backbone_matches_transformers_goldens() {
     let models = g["models"].as_object().unwrap();
     assert_eq!(models.len(), 2);
     for (name, model) in models {
-        let backbone = Dinov3Backbone::load(&goldens_dir().join(name)).unwrap();
+        let backbone = Dinov3Backbone::load(&goldens_dir().join(name), &common::device()).unwrap();
         let registers = model["num_register_tokens"].as_u64().unwrap() as usize;
         let hidden = model["hidden_size"].as_u64().unwrap() as usize;
         assert_eq!(backbone.config().num_register_tokens, registers);
@@ -86,7 +90,7 @@ fn backbone_matches_transformers_goldens() {
             let got = flat(&out.tokens);
             let diff = max_abs_diff(&got, &expected);
             assert!(
-                diff <= TOLERANCE,
+                diff <= tolerance(),
                 "{name} {height}x{width}: max |diff| {diff}"
             );
             // The three views cut the same tokens: CLS first, then registers, then patches in
@@ -112,7 +116,7 @@ fn backbone_matches_transformers_goldens() {
 
 #[test]
 fn a_batch_equals_its_images_one_by_one() {
-    let backbone = Dinov3Backbone::load(&goldens_dir().join("tiny")).unwrap();
+    let backbone = Dinov3Backbone::load(&goldens_dir().join("tiny"), &common::device()).unwrap();
     let a = pixels(48, 80);
     let b = (pixels(48, 80) * -0.5).unwrap();
     let both = Tensor::cat(&[&a, &b], 0).unwrap();
@@ -121,8 +125,8 @@ fn a_batch_equals_its_images_one_by_one() {
     let one_b = flat(&backbone.forward(&b).unwrap().tokens);
     let batch = flat(&out.tokens);
     let half = batch.len() / 2;
-    assert!(max_abs_diff(&batch[..half], &one_a) < 1e-5);
-    assert!(max_abs_diff(&batch[half..], &one_b) < 1e-5);
+    assert!(max_abs_diff(&batch[..half], &one_a) < common::tolerance(1e-5));
+    assert!(max_abs_diff(&batch[half..], &one_b) < common::tolerance(1e-5));
     assert!(
         max_abs_diff(&one_a, &one_b) > 1e-2,
         "different images, same tokens"
@@ -131,10 +135,10 @@ fn a_batch_equals_its_images_one_by_one() {
 
 #[test]
 fn sides_must_be_multiples_of_the_patch() {
-    let backbone = Dinov3Backbone::load(&goldens_dir().join("tiny")).unwrap();
+    let backbone = Dinov3Backbone::load(&goldens_dir().join("tiny"), &common::device()).unwrap();
     let e = backbone.forward(&pixels(40, 64)).unwrap_err().to_string();
     assert!(e.contains("40x64"), "{e}");
-    let grey = Tensor::zeros((1, 1, 32, 32), candle_core::DType::F32, &Device::Cpu).unwrap();
+    let grey = Tensor::zeros((1, 1, 32, 32), candle_core::DType::F32, &common::device()).unwrap();
     assert!(backbone.forward(&grey).is_err());
 }
 
@@ -159,8 +163,8 @@ fn in_memory_tensor_names_load_too() {
     let dir = tempfile::tempdir().unwrap();
     candle_core::safetensors::save(&renamed, dir.path().join("model.safetensors")).unwrap();
     std::fs::copy(src.join("config.json"), dir.path().join("config.json")).unwrap();
-    let a = Dinov3Backbone::load(&src).unwrap();
-    let b = Dinov3Backbone::load(dir.path()).unwrap();
+    let a = Dinov3Backbone::load(&src, &common::device()).unwrap();
+    let b = Dinov3Backbone::load(dir.path(), &common::device()).unwrap();
     let x = pixels(64, 64);
     assert_eq!(
         flat(&a.forward(&x).unwrap().tokens),
@@ -181,7 +185,7 @@ fn weights_that_disagree_with_the_config_are_named() {
         .unwrap()
         .replace("\"num_hidden_layers\": 2", "\"num_hidden_layers\": 3");
     std::fs::write(dir.path().join("config.json"), config).unwrap();
-    let e = Dinov3Backbone::load(dir.path()).unwrap_err();
+    let e = Dinov3Backbone::load(dir.path(), &common::device()).unwrap_err();
     assert!(matches!(e, BackendError::InvalidModelFile { .. }), "{e:?}");
     assert!(e.to_string().contains("layer.2"), "{e}");
 }
@@ -190,7 +194,7 @@ fn weights_that_disagree_with_the_config_are_named() {
 fn missing_files_are_named_with_the_way_to_get_them() {
     let dir = tempfile::tempdir().unwrap();
     std::fs::write(dir.path().join("config.json"), "{}").unwrap();
-    let e = Dinov3Backbone::load(dir.path()).unwrap_err();
+    let e = Dinov3Backbone::load(dir.path(), &common::device()).unwrap_err();
     let BackendError::MissingModelFiles { missing, .. } = &e else {
         panic!("{e:?}");
     };
@@ -221,12 +225,16 @@ fn floats(v: &Value) -> Vec<f32> {
 
 fn tiny_dinotxt() -> (Dinov3Backbone, DinoTxtHeads, Value) {
     let g = goldens()["dinotxt"].clone();
-    let backbone =
-        Dinov3Backbone::load(&goldens_dir().join(g["backbone"].as_str().unwrap())).unwrap();
+    let backbone = Dinov3Backbone::load(
+        &goldens_dir().join(g["backbone"].as_str().unwrap()),
+        &common::device(),
+    )
+    .unwrap();
     let heads = DinoTxtHeads::load_pth(
         &goldens_dir().join(g["checkpoint"].as_str().unwrap()),
         g["vision_heads"].as_u64().unwrap() as usize,
         Some(g["text_heads"].as_u64().unwrap() as usize),
+        &common::device(),
     )
     .unwrap();
     (backbone, heads, g)
@@ -246,14 +254,14 @@ fn dinotxt_vision_head_matches_meta_goldens() {
         let image = flat(&out.image_embedding);
         let diff = max_abs_diff(&image, &floats(&case["image_embedding"]));
         assert!(
-            diff <= TOLERANCE,
+            diff <= tolerance(),
             "{height}x{width} image: max |diff| {diff}"
         );
         let (gh, gw) = (height / 16, width / 16);
         assert_eq!(out.patch_grid.dims(), &[1, gh, gw, heads.patch_dim()]);
         let diff = max_abs_diff(&flat(&out.patch_grid), &floats(&case["patch_tokens"]));
         assert!(
-            diff <= TOLERANCE,
+            diff <= tolerance(),
             "{height}x{width} patches: max |diff| {diff}"
         );
     }
@@ -275,7 +283,7 @@ fn dinotxt_text_tower_matches_meta_goldens() {
         let got = heads.text(&ids).unwrap();
         assert_eq!(got.len(), heads.embed_dim());
         let diff = max_abs_diff(&got, &expected);
-        assert!(diff <= TOLERANCE, "{ids:?}: max |diff| {diff}");
+        assert!(diff <= tolerance(), "{ids:?}: max |diff| {diff}");
         // The zero-padded sequence the reference runs gives the same embedding.
         let padded = token_ids(&case["padded_ids"]);
         assert_eq!(heads.text(&padded).unwrap(), got);
@@ -334,6 +342,7 @@ fn tiny_encoder_config() -> Dinov3EncoderConfig {
         text_heads: Some(g["text_heads"].as_u64().unwrap() as usize),
         // The golden image is 64x48: this short side needs no resampling.
         short_side: 48,
+        device: common::compute_device(),
         ..Dinov3EncoderConfig::default()
     }
 }
@@ -351,7 +360,7 @@ fn encoder_text_matches_meta_goldens() {
         assert_eq!(encoder.tokenizer().tokenize(text, 16), ids, "{text:?}");
         let got = encoder.encode_text(text).unwrap();
         let diff = max_abs_diff(&got, &floats(&case["embedding"]));
-        assert!(diff <= TOLERANCE, "{text:?}: max |diff| {diff}");
+        assert!(diff <= tolerance(), "{text:?}: max |diff| {diff}");
     }
 }
 
@@ -386,7 +395,7 @@ fn encoder_patch_grid_matches_meta_goldens() {
         )
     );
     let diff = max_abs_diff(&grid, &floats(&g["patch_grid"]));
-    assert!(diff <= TOLERANCE, "max |diff| {diff}");
+    assert!(diff <= tolerance(), "max |diff| {diff}");
     // The embeddings cover the frame; a pixel at a patch centre has that patch's embedding.
     let e = encoder
         .encode_image(&golden_image(width, height), &[])

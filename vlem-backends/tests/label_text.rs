@@ -12,6 +12,8 @@
 //! is many times slower.
 #![cfg(feature = "label-text")]
 
+mod common;
+
 use std::path::Path;
 use std::sync::{Arc, OnceLock};
 use std::time::Instant;
@@ -25,7 +27,9 @@ use vlem_core::{BuildContext, Encoder, LabelImage, LabelNames, Registry, StageCo
 const GOLDENS: &str = include_str!("../goldens/minilm_goldens.json");
 
 /// Largest accepted difference of any component from sentence-transformers.
-const TOLERANCE: f32 = 1e-4;
+fn tolerance() -> f32 {
+    common::tolerance(1e-4)
+}
 
 #[derive(Deserialize)]
 struct Goldens {
@@ -43,7 +47,11 @@ struct Golden {
 fn encoder() -> &'static LabelTextEncoder {
     static ENCODER: OnceLock<LabelTextEncoder> = OnceLock::new();
     ENCODER.get_or_init(|| {
-        LabelTextEncoder::from_config(LabelTextConfig::default(), &BuildContext::default())
+        let config = LabelTextConfig {
+            device: common::compute_device(),
+            ..LabelTextConfig::default()
+        };
+        LabelTextEncoder::from_config(config, &BuildContext::default())
             .unwrap_or_else(|e| panic!("the all-MiniLM-L6-v2 model is needed for this test: {e}"))
     })
 }
@@ -78,9 +86,10 @@ fn minilm_matches_sentence_transformers() {
         let shown: String = g.text.chars().take(40).collect();
         println!("max abs error {err:.2e}  {shown:?}");
         assert!(
-            err <= TOLERANCE,
-            "{:?}: max abs error {err} > {TOLERANCE}",
-            g.text
+            err <= tolerance(),
+            "{:?}: max abs error {err} > {}",
+            g.text,
+            tolerance()
         );
         worst = worst.max(err);
     }
@@ -97,7 +106,7 @@ fn minilm_matches_sentence_transformers() {
         .fold(0.0f32, f32::max);
     println!("one batch: max abs error over all goldens {worst_batch:.2e}");
     assert!(
-        worst_batch <= TOLERANCE,
+        worst_batch <= tolerance(),
         "batched: max abs error {worst_batch}"
     );
 }
@@ -150,7 +159,7 @@ fn a_synthetic_frame_embeds_each_class_as_its_name() {
                     if classes.insert(name) {
                         let text = e.encode_text(name).unwrap();
                         let c = cosine(&out, &text);
-                        assert!((c - 1.0).abs() < 1e-5, "{name}: cos {c}");
+                        assert!((c - 1.0).abs() < common::tolerance(1e-5), "{name}: cos {c}");
                     }
                 }
                 None => assert!(!has, "pixel ({u}, {v}) of unnamed class {id} is embedded"),
@@ -191,7 +200,7 @@ fn unlabelled_and_unnamed_pixels_have_no_embedding_and_bare_images_are_refused()
 fn templates_average_the_prompts() {
     let dir = sentence().dir().to_path_buf();
     let templated = LabelTextEncoder::new(
-        SentenceEncoder::load(&dir).unwrap(),
+        SentenceEncoder::load(&dir, &common::device()).unwrap(),
         vec!["{}".to_owned(), "a photo of a {}.".to_owned()],
     )
     .unwrap();
@@ -201,7 +210,7 @@ fn templates_average_the_prompts() {
     let mean: Vec<f32> = a.iter().zip(&b).map(|(x, y)| x + y).collect();
     let norm = mean.iter().map(|x| x * x).sum::<f32>().sqrt();
     let expected: Vec<f32> = mean.iter().map(|x| x / norm).collect();
-    assert!(max_abs_diff(&got, &expected) < 1e-5);
+    assert!(max_abs_diff(&got, &expected) < common::tolerance(1e-5));
 }
 
 #[test]
@@ -291,7 +300,7 @@ fn a_model_dir_without_the_model_fails_with_the_install_hint() {
 fn timings() {
     let dir = sentence().dir().to_path_buf();
     let t = Instant::now();
-    let loaded = SentenceEncoder::load(Path::new(&dir)).unwrap();
+    let loaded = SentenceEncoder::load(Path::new(&dir), &common::device()).unwrap();
     println!("model load: {:.0} ms", t.elapsed().as_secs_f64() * 1e3);
 
     let texts = [

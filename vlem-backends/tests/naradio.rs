@@ -11,9 +11,11 @@
 //! missing-model error.
 #![cfg(feature = "naradio")]
 
+mod common;
+
 use std::path::{Path, PathBuf};
 
-use candle_core::{Device, Tensor};
+use candle_core::Tensor;
 use serde_json::Value;
 use vlem_backends::BackendError;
 use vlem_backends::naradio::{
@@ -22,7 +24,9 @@ use vlem_backends::naradio::{
 };
 use vlem_core::{BuildContext, Encoder, RgbImage};
 
-const TOLERANCE: f32 = 1e-4;
+fn tolerance() -> f32 {
+    common::tolerance(1e-4)
+}
 
 fn goldens_dir() -> PathBuf {
     Path::new(env!("CARGO_MANIFEST_DIR")).join("goldens/naradio")
@@ -48,7 +52,7 @@ fn pixels(height: usize, width: usize) -> Tensor {
             }
         }
     }
-    Tensor::from_vec(v, (1, 3, height, width), &Device::Cpu).unwrap()
+    Tensor::from_vec(v, (1, 3, height, width), &common::device()).unwrap()
 }
 
 fn floats(v: &Value) -> Vec<f32> {
@@ -72,7 +76,11 @@ fn assert_close(what: &str, got: &[f32], want: &[f32]) {
         .fold(0.0, f32::max);
     let scale = want.iter().map(|x| x.abs()).fold(0.0, f32::max);
     assert!(scale > 1e-3, "{what}: the golden is all zeros");
-    assert!(diff <= TOLERANCE, "{what}: max |diff| {diff} > {TOLERANCE}");
+    assert!(
+        diff <= tolerance(),
+        "{what}: max |diff| {diff} > {}",
+        tolerance()
+    );
 }
 
 /// `(batch, channels, h, w)` row-major -> `(h·w, channels)` row-major, as RayFronts returns its
@@ -95,7 +103,7 @@ fn usize_of(v: &Value) -> usize {
 #[test]
 fn trunk_matches_radio() {
     let g = goldens();
-    let model = RadioModel::load(&tiny_dir()).unwrap();
+    let model = RadioModel::load(&tiny_dir(), &common::device()).unwrap();
     for case in g["trunk"].as_array().unwrap() {
         let (h, w) = (usize_of(&case["height"]), usize_of(&case["width"]));
         let x = model.condition(&pixels(h, w)).unwrap();
@@ -118,7 +126,7 @@ fn trunk_matches_radio() {
 fn naradio_matches_rayfronts() {
     let g = goldens();
     let std = g["gauss_std"].as_f64().unwrap();
-    let model = RadioModel::load(&tiny_dir()).unwrap();
+    let model = RadioModel::load(&tiny_dir(), &common::device()).unwrap();
     let embed = model.config().embed_dim;
     let dim = model.adaptor_dim().unwrap();
     for case in g["naradio"].as_array().unwrap() {
@@ -246,7 +254,10 @@ fn naclip_attention_by_hand() {
     let got =
         vlem_backends::naradio::model::naclip_attention_for_test(&weight, &bias, &xs, 2, 1, &prior);
     for (a, b) in got.iter().zip(&expected) {
-        assert!((a - b).abs() < 1e-5, "{got:?} vs {expected:?}");
+        assert!(
+            (a - b).abs() < common::tolerance(1e-5),
+            "{got:?} vs {expected:?}"
+        );
     }
     // Changing q changes nothing.
     let mut other = weight;
@@ -259,7 +270,7 @@ fn naclip_attention_by_hand() {
 #[test]
 fn text_matches_open_clip() {
     let g = goldens();
-    let text = SiglipText::load(&tiny_dir().join("text")).unwrap();
+    let text = SiglipText::load(&tiny_dir().join("text"), &common::device()).unwrap();
     let prompts: Vec<&str> = g["text"]["prompts"]
         .as_array()
         .unwrap()
@@ -290,6 +301,7 @@ fn tiny_encoder() -> NaradioEncoder {
         model_dir: Some(tiny_dir()),
         short_side: 64,
         gauss_std: g["gauss_std"].as_f64().unwrap(),
+        device: common::compute_device(),
         ..NaradioEncoderConfig::default()
     };
     NaradioEncoder::from_config(config, &BuildContext::default()).unwrap()
@@ -353,7 +365,7 @@ fn encoder_patch_grid_is_the_models() {
         .collect();
     let model = enc.model();
     let x8 = model
-        .condition(&Tensor::from_vec(q, (1, 3, 64, 64), &Device::Cpu).unwrap())
+        .condition(&Tensor::from_vec(q, (1, 3, 64, 64), &common::device()).unwrap())
         .unwrap();
     let last = LastBlock::Naclip {
         std: g["gauss_std"].as_f64().unwrap(),

@@ -11,6 +11,8 @@
 //! a hand-made decoder, the config and the weights loading.
 #![cfg(feature = "sam")]
 
+mod common;
+
 use std::collections::BTreeMap;
 use std::path::{Path, PathBuf};
 
@@ -123,7 +125,7 @@ fn build_checked(encoder: &EncoderConfig, state_dict: &str) -> (SamModel, Vec<St
         })
         .collect();
     let weights = SyntheticWeights::new();
-    let model = SamModel::new(weights.var_builder(&Device::Cpu), encoder).unwrap();
+    let model = SamModel::new(weights.var_builder(&common::device()), encoder).unwrap();
     let requested = weights.requested();
     for (name, shape) in &requested {
         match reference.get(name) {
@@ -167,8 +169,12 @@ fn stride_sample(values: &[f32], width: usize, step: usize) -> Vec<f32> {
 
 /// Low-resolution mask logits and embeddings are O(1); these bounds leave room for f32
 /// summation-order differences between candle and PyTorch through a dozen layers.
-const EMBED_TOL: f32 = 1e-4;
-const MASK_TOL: f32 = 1e-4;
+fn embed_tol() -> f32 {
+    common::tolerance(1e-4)
+}
+fn mask_tol() -> f32 {
+    common::tolerance(1e-4)
+}
 
 fn check_network(key: &str, encoder: EncoderConfig, state_dict: &str) {
     let goldens = read_json("sam_goldens.json");
@@ -212,11 +218,11 @@ fn check_network(key: &str, encoder: EncoderConfig, state_dict: &str) {
     let want_mean = g["embedding_mean"].as_f64().unwrap() as f32;
     let want_abs = g["embedding_abs_mean"].as_f64().unwrap() as f32;
     assert!(
-        (mean - want_mean).abs() < 1e-5,
+        (mean - want_mean).abs() < common::tolerance(1e-5),
         "{key}: mean {mean} vs {want_mean}"
     );
     assert!(
-        (abs_mean - want_abs).abs() < 1e-5,
+        (abs_mean - want_abs).abs() < common::tolerance(1e-5),
         "{key}: mean |x| {abs_mean} vs {want_abs}"
     );
     let sample: Vec<f32> = (0..256)
@@ -234,7 +240,7 @@ fn check_network(key: &str, encoder: EncoderConfig, state_dict: &str) {
         &format!("{key} embeddings"),
         &sample,
         &f32s(&g["embedding_sample"]),
-        EMBED_TOL,
+        embed_tol(),
     );
 
     let xs = AxisMap::new(pre.input.1, w);
@@ -250,7 +256,7 @@ fn check_network(key: &str, encoder: EncoderConfig, state_dict: &str) {
             &format!("{key} IoU at {pt:?}"),
             &ious,
             &f32s(&p["iou"]),
-            MASK_TOL,
+            mask_tol(),
         );
         for k in 0..3 {
             let low = &masks[k * LOW_RES * LOW_RES..(k + 1) * LOW_RES * LOW_RES];
@@ -259,7 +265,7 @@ fn check_network(key: &str, encoder: EncoderConfig, state_dict: &str) {
                 &format!("{key} low-res mask {k} at {pt:?}"),
                 &stride_sample(low, LOW_RES, 16),
                 &f32s(&gl["sample"]),
-                MASK_TOL,
+                mask_tol(),
             );
             let up = upsample_logits(low, &xs, &ys);
             let gu = &p["upsampled"][k];
@@ -267,7 +273,7 @@ fn check_network(key: &str, encoder: EncoderConfig, state_dict: &str) {
                 &format!("{key} upsampled mask {k} at {pt:?}"),
                 &stride_sample(&up, w, 8),
                 &f32s(&gu["sample"]),
-                MASK_TOL,
+                mask_tol(),
             );
             let stability = amg::stability_score(&up, 0.0, 1.0);
             assert!(
@@ -320,7 +326,7 @@ fn check_network(key: &str, encoder: EncoderConfig, state_dict: &str) {
                 .iter()
                 .find(|m| key_of(m.point, m.predicted_iou) == k)
                 .unwrap_or_else(|| panic!("{key} AMG: no mask for {wm}"));
-            assert!((got.predicted_iou - wiou).abs() < MASK_TOL);
+            assert!((got.predicted_iou - wiou).abs() < mask_tol());
             let ws = wm["stability_score"].as_f64().unwrap() as f32;
             assert!(
                 (got.stability_score - ws).abs() < 2e-3,
@@ -344,7 +350,7 @@ fn check_network(key: &str, encoder: EncoderConfig, state_dict: &str) {
                 .iter()
                 .map(|m| m["predicted_iou"].as_f64().unwrap() as f32)
                 .collect();
-            assert_close(&format!("{key} AMG order"), &got, &want, MASK_TOL);
+            assert_close(&format!("{key} AMG order"), &got, &want, mask_tol());
         }
     }
 }

@@ -1,5 +1,5 @@
 //! `clip`: CLIP segment embeddings (`[encoder] kind = "clip"`), the paper's segment-embedding
-//! path with a CLIP ViT on candle, CPU.
+//! path with a CLIP ViT on candle (CPU, or a CUDA GPU with feature `cuda`).
 //!
 //! Why it exists: CLIP embeds whole images, not pixels. The paper's answer (section
 //! "Segment-Embeddings") is to embed each region of a frame, found by a region proposer, as its
@@ -30,6 +30,7 @@
 //! # seed = 0                # of the random background
 //! # templates = ["a photo of a {}."]
 //! # batch_size = 16         # crops per forward pass
+//! # device = "cpu"          # "cuda", "cuda:N" with feature `cuda`
 //! ```
 
 pub mod model;
@@ -69,6 +70,8 @@ pub struct ClipEncoderConfig {
     pub templates: Vec<String>,
     /// Crops per image-tower call: bounds the memory of the forward pass. Default 16.
     pub batch_size: usize,
+    /// Where the model runs: `"cpu"` (default), `"cuda"` or `"cuda:N"` (feature `cuda`).
+    pub device: crate::ComputeDevice,
 }
 
 impl Default for ClipEncoderConfig {
@@ -79,6 +82,7 @@ impl Default for ClipEncoderConfig {
             seed: 0,
             templates: crate::prompts::default_templates(),
             batch_size: DEFAULT_BATCH_SIZE,
+            device: crate::ComputeDevice::Cpu,
         }
     }
 }
@@ -189,15 +193,15 @@ impl ClipEncoder {
     /// normalisation, checks the rest.
     ///
     /// # Errors
-    /// As [`locate_model_dir`], [`ClipModel::load`], [`read_normalisation`] and
-    /// [`ClipEncoder::new`].
+    /// As [`crate::ComputeDevice::open`], [`locate_model_dir`], [`ClipModel::load`],
+    /// [`read_normalisation`] and [`ClipEncoder::new`].
     pub fn from_config(
         config: ClipEncoderConfig,
         ctx: &BuildContext,
     ) -> Result<Self, BackendError> {
         let configured = config.model_dir.as_deref().map(|p| ctx.resolve(p));
         let dir = locate_model_dir(configured.as_deref())?;
-        let model = ClipModel::load(&dir)?;
+        let model = ClipModel::load(&dir, &config.device.open()?)?;
         let (mean, std) = read_normalisation(&dir)?;
         let size =
             u32::try_from(model.image_size()).map_err(|_| BackendError::InvalidModelFile {

@@ -721,14 +721,14 @@ pub fn check_model_dir(dir: &Path, origin: String) -> Result<PathBuf, BackendErr
 }
 
 impl ClipModel {
-    /// Loads the model in `dir` (`config.json`, `model.safetensors`, `tokenizer.json`), on the
-    /// CPU, in f32 (half-precision weights are widened).
+    /// Loads the model in `dir` (`config.json`, `model.safetensors`, `tokenizer.json`) onto
+    /// `device` (see [`crate::ComputeDevice::open`]), in f32 (half-precision weights are widened).
     ///
     /// # Errors
     /// [`BackendError::MissingModelFiles`] when a file is missing,
     /// [`BackendError::InvalidModelFile`] when one cannot be read or does not describe a CLIP
     /// model (wrong `model_type`, tensor names or shapes that disagree with `config.json`).
-    pub fn load(dir: &Path) -> Result<Self, BackendError> {
+    pub fn load(dir: &Path, device: &Device) -> Result<Self, BackendError> {
         let dir = check_model_dir(dir, "the caller".to_owned())?;
         let config_path = dir.join("config.json");
         let text = crate::model_files::read_text(&config_path)?;
@@ -761,7 +761,7 @@ impl ClipModel {
             )));
         }
 
-        let device = Device::Cpu;
+        let device = device.clone();
         let weights_path = dir.join("model.safetensors");
         let weights = candle_core::safetensors::load(&weights_path, &device).map_err(|e| {
             BackendError::InvalidModelFile {
@@ -862,7 +862,12 @@ impl ClipModel {
         // call; that gains more than larger matrix products do.
         let tokens = self.config.grid() * self.config.grid() + 1;
         let widest = c.intermediate_size.max(3 * c.hidden_size);
-        let group = (GROUP_BYTES / (tokens * widest * 4).max(1)).max(1);
+        let group = if self.device.is_cpu() {
+            (GROUP_BYTES / (tokens * widest * 4).max(1)).max(1)
+        } else {
+            // A GPU wants the whole batch in one call; its memory is bounded by `batch_size`.
+            usize::MAX
+        };
         self.image_features_in_groups(pixels, group)
             .map_err(|e| BackendError::Inference {
                 what: what(),
@@ -1034,7 +1039,7 @@ mod tests {
     #[test]
     fn grouping_images_does_not_change_their_features() {
         let dir = Path::new(env!("CARGO_MANIFEST_DIR")).join("goldens/clip/tiny-gelu");
-        let model = ClipModel::load(&dir).unwrap();
+        let model = ClipModel::load(&dir, &Device::Cpu).unwrap();
         let pixels: Vec<f32> = (0..5 * 3 * 32 * 32)
             .map(|i| ((i * 37 % 101) as f32 / 50.0) - 1.0)
             .collect();

@@ -90,6 +90,7 @@ impl DinoTxtHeads {
         path: &Path,
         vision_heads: usize,
         text_heads: Option<usize>,
+        device: &Device,
     ) -> Result<Self, BackendError> {
         let invalid = |reason: String| BackendError::InvalidModelFile {
             path: path.to_path_buf(),
@@ -98,11 +99,12 @@ impl DinoTxtHeads {
         let tensors = candle_core::pickle::read_all(path)
             .map_err(|e| invalid(format!("cannot read it as a PyTorch state dict: {e}")))?;
         let tensors: HashMap<String, Tensor> = tensors.into_iter().collect();
-        Self::from_weights(&Weights::new(tensors), vision_heads, text_heads).map_err(invalid)
+        Self::from_weights(&Weights::new(tensors, device), vision_heads, text_heads)
+            .map_err(invalid)
     }
 
-    /// The heads from tensors named as in the released checkpoint, for benchmarks that fill the
-    /// full-size architecture with random weights.
+    /// The heads from tensors named as in the released checkpoint, on `device`, for benchmarks
+    /// that fill the full-size architecture with random weights.
     ///
     /// # Errors
     /// [`BackendError::InvalidParams`] naming a missing or misshapen tensor.
@@ -111,8 +113,9 @@ impl DinoTxtHeads {
         tensors: HashMap<String, Tensor>,
         vision_heads: usize,
         text_heads: Option<usize>,
+        device: &Device,
     ) -> Result<Self, BackendError> {
-        Self::from_weights(&Weights::new(tensors), vision_heads, text_heads)
+        Self::from_weights(&Weights::new(tensors, device), vision_heads, text_heads)
             .map_err(BackendError::InvalidParams)
     }
 
@@ -328,8 +331,8 @@ impl DinoTxtHeads {
         let run = || -> candle_core::Result<Vec<f32>> {
             let t = &self.text;
             let len = pooled + 1;
-            let device = Device::Cpu;
-            let idx = Tensor::from_vec(ids[..len].to_vec(), len, &device)?;
+            let device = t.token_embedding.device();
+            let idx = Tensor::from_vec(ids[..len].to_vec(), len, device)?;
             let x = t
                 .token_embedding
                 .index_select(&idx, 0)?
@@ -338,7 +341,7 @@ impl DinoTxtHeads {
             let mask: Vec<f32> = (0..len)
                 .flat_map(|i| (0..len).map(move |j| if j > i { f32::NEG_INFINITY } else { 0.0 }))
                 .collect();
-            let mask = Tensor::from_vec(mask, (len, len), &device)?;
+            let mask = Tensor::from_vec(mask, (len, len), device)?;
             let mut x = x;
             for block in &t.blocks {
                 x = block.forward(&x, None, Some(&mask))?;

@@ -28,11 +28,12 @@
 //! # bpe_vocab = "other/place/bpe_simple_vocab_16e6.txt.gz"   # else model_dir, else open_clip's
 //! # short_side = 448                  # input's shorter side in pixels, a multiple of 16
 //! # templates = ["a photo of a {}."]
+//! # device = "cpu"                   # "cuda", "cuda:N" with feature `cuda`
 //! ```
 
 use std::path::{Path, PathBuf};
 
-use candle_core::{Device, Tensor};
+use candle_core::Tensor;
 use serde::Deserialize;
 use vlem_core::{BuildContext, Encoder, PixelEmbeddings, Region, RgbImage, StageKind};
 
@@ -93,6 +94,8 @@ pub struct Dinov3EncoderConfig {
     /// Attention heads of the text tower, which the checkpoint does not record. Unset: its
     /// width over 64 (the released tower: 1280 wide, 20 heads). Only other tower shapes need it.
     pub text_heads: Option<usize>,
+    /// Where the model runs: `"cpu"` (default), `"cuda"` or `"cuda:N"` (feature `cuda`).
+    pub device: crate::ComputeDevice,
 }
 
 impl Default for Dinov3EncoderConfig {
@@ -104,6 +107,7 @@ impl Default for Dinov3EncoderConfig {
             short_side: DEFAULT_SHORT_SIDE,
             templates: crate::prompts::default_templates(),
             text_heads: None,
+            device: crate::ComputeDevice::Cpu,
         }
     }
 }
@@ -267,7 +271,8 @@ impl Dinov3Encoder {
     /// Loads the encoder from its parameters.
     ///
     /// # Errors
-    /// As [`locate_files`], [`Dinov3Backbone::load`], [`DinoTxtHeads::load_pth`],
+    /// As [`crate::ComputeDevice::open`], [`locate_files`], [`Dinov3Backbone::load`],
+    /// [`DinoTxtHeads::load_pth`],
     /// [`ClipBpe::load`] and [`Dinov3Encoder::new`].
     pub fn from_config(
         config: Dinov3EncoderConfig,
@@ -279,11 +284,13 @@ impl Dinov3Encoder {
             resolve(&config.dinotxt_weights).as_deref(),
             resolve(&config.bpe_vocab).as_deref(),
         )?;
-        let backbone = Dinov3Backbone::load(&files.model_dir)?;
+        let device = config.device.open()?;
+        let backbone = Dinov3Backbone::load(&files.model_dir, &device)?;
         let heads = DinoTxtHeads::load_pth(
             &files.dinotxt_weights,
             backbone.config().num_attention_heads,
             config.text_heads,
+            &device,
         )?;
         let tokenizer = ClipBpe::load(&files.bpe_vocab)?;
         if tokenizer.vocab_size() > heads.vocab_size() {
@@ -328,7 +335,7 @@ impl Dinov3Encoder {
             let pixels = Tensor::from_vec(
                 planes,
                 (1, 3, height as usize, width as usize),
-                &Device::Cpu,
+                self.backbone.device(),
             )?;
             let tokens = self.backbone.forward(&pixels)?;
             let grid = self.heads.vision(&tokens)?.patch_grid;

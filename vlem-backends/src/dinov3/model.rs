@@ -334,7 +334,7 @@ pub fn check_model_dir(dir: &Path, origin: String) -> Result<PathBuf, BackendErr
 }
 
 impl Dinov3Backbone {
-    /// Loads the backbone in `dir` (`config.json`, `model.safetensors`), on the CPU, in f32
+    /// Loads the backbone in `dir` (`config.json`, `model.safetensors`) onto `device`, in f32
     /// (half-precision weights are widened). Reads the tensor names of the hub checkpoints
     /// (`layer.N.…`) and those `transformers` ≥ 5 uses in memory (`model.layer.N.…`).
     ///
@@ -342,7 +342,7 @@ impl Dinov3Backbone {
     /// [`BackendError::MissingModelFiles`] when a file is missing,
     /// [`BackendError::InvalidModelFile`] when one cannot be read or does not describe a DINOv3
     /// ViT (wrong `model_type`, tensor names or shapes that disagree with `config.json`).
-    pub fn load(dir: &Path) -> Result<Self, BackendError> {
+    pub fn load(dir: &Path, device: &Device) -> Result<Self, BackendError> {
         let dir = check_model_dir(dir, "the caller".to_owned())?;
         let config_path = dir.join("config.json");
         let text = crate::model_files::read_text(&config_path)?;
@@ -351,15 +351,14 @@ impl Dinov3Backbone {
                 path: config_path.clone(),
                 reason,
             })?;
-        let device = Device::Cpu;
         let weights_path = dir.join("model.safetensors");
-        let tensors = candle_core::safetensors::load(&weights_path, &device).map_err(|e| {
+        let tensors = candle_core::safetensors::load(&weights_path, device).map_err(|e| {
             BackendError::InvalidModelFile {
                 path: weights_path.clone(),
                 reason: format!("cannot read the weights: {e}"),
             }
         })?;
-        let mut backbone = Self::from_weights(&config, &Weights::new(tensors), "", &device)
+        let mut backbone = Self::from_weights(&config, &Weights::new(tensors, device), "")
             .map_err(|reason| BackendError::InvalidModelFile {
                 path: weights_path.clone(),
                 reason: format!("the weights do not match config.json: {reason}"),
@@ -368,8 +367,8 @@ impl Dinov3Backbone {
         Ok(backbone)
     }
 
-    /// The backbone from tensors named as in a hub `model.safetensors`, for benchmarks that
-    /// fill a full-size architecture with random weights.
+    /// The backbone from tensors named as in a hub `model.safetensors`, on `device`, for
+    /// benchmarks that fill a full-size architecture with random weights.
     ///
     /// # Errors
     /// [`BackendError::InvalidParams`] naming a missing or misshapen tensor.
@@ -377,8 +376,9 @@ impl Dinov3Backbone {
     pub fn from_tensors(
         config: &Dinov3Config,
         tensors: std::collections::HashMap<String, Tensor>,
+        device: &Device,
     ) -> Result<Self, BackendError> {
-        Self::from_weights(config, &Weights::new(tensors), "", &Device::Cpu)
+        Self::from_weights(config, &Weights::new(tensors, device), "")
             .map_err(BackendError::InvalidParams)
     }
 
@@ -388,7 +388,6 @@ impl Dinov3Backbone {
         config: &Dinov3Config,
         w: &Weights,
         prefix: &str,
-        device: &Device,
     ) -> Result<Self, String> {
         config.validate()?;
         let c = config;
@@ -431,7 +430,7 @@ impl Dinov3Backbone {
             prefix: prefix_tokens,
             layers,
             norm: w.layer_norm(&format!("{prefix}norm"), hidden, c.layer_norm_eps)?,
-            device: device.clone(),
+            device: w.device().clone(),
             dir: PathBuf::new(),
         })
     }
@@ -446,7 +445,7 @@ impl Dinov3Backbone {
         &self.dir
     }
 
-    /// The device the weights live on (the CPU).
+    /// The device the weights live on.
     pub fn device(&self) -> &Device {
         &self.device
     }
@@ -512,7 +511,7 @@ fn load_hf_layer(w: &Weights, prefix: &str, c: &Dinov3Config) -> Result<Block, S
         let bias = if bias {
             w.get(&format!("{a}.{name}.bias"), &[h])?
         } else {
-            Tensor::zeros(h, DType::F32, &Device::Cpu).map_err(|e| e.to_string())?
+            Tensor::zeros(h, DType::F32, w.device()).map_err(|e| e.to_string())?
         };
         Ok((weight, bias))
     };

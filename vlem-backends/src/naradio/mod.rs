@@ -29,6 +29,7 @@
 //! # gaussian_grid = "rayfronts"    # or "image" (NACLIP's layout; differs for non-square input)
 //! # reduced_last_block = false     # true: NACLIP's block without residual and MLP
 //! # templates = ["a photo of a {}."]  # default: the 80 OpenAI ImageNet templates
+//! # device = "cpu"                # "cuda", "cuda:N" with feature `cuda`
 //! ```
 
 pub mod model;
@@ -159,6 +160,8 @@ pub struct NaradioEncoderConfig {
     pub reduced_last_block: bool,
     /// Prompt templates, each with one `{}`. Default: [`IMAGENET_TEMPLATES`].
     pub templates: Vec<String>,
+    /// Where the model runs: `"cpu"` (default), `"cuda"` or `"cuda:N"` (feature `cuda`).
+    pub device: crate::ComputeDevice,
 }
 
 impl Default for NaradioEncoderConfig {
@@ -170,6 +173,7 @@ impl Default for NaradioEncoderConfig {
             gaussian_grid: GaussianGrid::Rayfronts,
             reduced_last_block: false,
             templates: IMAGENET_TEMPLATES.iter().map(|t| (*t).to_owned()).collect(),
+            device: crate::ComputeDevice::Cpu,
         }
     }
 }
@@ -216,7 +220,8 @@ impl NaradioEncoder {
     /// Builds the encoder from its parameters: finds and loads the model, checks the rest.
     ///
     /// # Errors
-    /// As [`locate_model_dir`], [`RadioModel::load`] and [`SiglipText::load`];
+    /// As [`crate::ComputeDevice::open`], [`locate_model_dir`], [`RadioModel::load`] and
+    /// [`SiglipText::load`];
     /// [`BackendError::InvalidParams`] for a short side that is not a positive multiple of 16,
     /// a non-positive `gauss_std`, no template or a template without `{}`.
     pub fn from_config(
@@ -233,7 +238,8 @@ impl NaradioEncoder {
         }
         let configured = config.model_dir.as_deref().map(|p| ctx.resolve(p));
         let dir = locate_model_dir(configured.as_deref())?;
-        let model = RadioModel::load(&dir)?;
+        let device = config.device.open()?;
+        let model = RadioModel::load(&dir, &device)?;
         let patch = model.config().patch_size;
         if config.short_side == 0 || !(config.short_side as usize).is_multiple_of(patch) {
             return bad(format!(
@@ -241,7 +247,7 @@ impl NaradioEncoder {
                 config.short_side
             ));
         }
-        let text = SiglipText::load(&dir.join("text"))?;
+        let text = SiglipText::load(&dir.join("text"), &device)?;
         let dim = model.adaptor_dim()?;
         Ok(Self {
             model,

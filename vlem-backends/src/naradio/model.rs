@@ -294,7 +294,7 @@ impl RadioModel {
     /// # Errors
     /// [`BackendError::MissingModelFiles`] when a file of the folder is missing;
     /// [`BackendError::InvalidModelFile`] when one cannot be read or disagrees with the config.
-    pub fn load(dir: &Path) -> Result<Self, BackendError> {
+    pub fn load(dir: &Path, device: &Device) -> Result<Self, BackendError> {
         let dir = check_model_dir(dir, "the caller".to_owned())?;
         let config_path = dir.join("config.json");
         let text = crate::model_files::read_text(&config_path)?;
@@ -319,20 +319,14 @@ impl RadioModel {
             return Err(invalid(&config_path, "inconsistent model shape"));
         }
         let weights_path = dir.join("radio.safetensors");
-        let device = Device::Cpu;
-        let tensors = candle_core::safetensors::load(&weights_path, &device)
+        let tensors = candle_core::safetensors::load(&weights_path, device)
             .map_err(|e| invalid(&weights_path, format!("cannot read it: {e}")))?;
-        let w = Weights::new(tensors);
-        Self::from_weights(config, &w, device, dir.clone())
-            .map_err(|reason| invalid(&weights_path, reason))
+        let w = Weights::new(tensors, device);
+        Self::from_weights(config, &w, dir.clone()).map_err(|reason| invalid(&weights_path, reason))
     }
 
-    fn from_weights(
-        config: RadioConfig,
-        w: &Weights,
-        device: Device,
-        dir: PathBuf,
-    ) -> Result<Self, String> {
+    fn from_weights(config: RadioConfig, w: &Weights, dir: PathBuf) -> Result<Self, String> {
+        let device = w.device().clone();
         let c = &config;
         let e = c.embed_dim;
         let p = c.patch_size;
@@ -414,7 +408,7 @@ impl RadioModel {
     }
 
     /// A model of the shape `config` with random weights and a `v2` adaptor of `adaptor_hidden`
-    /// → `adaptor_out` with one inner block: for speed measurements only.
+    /// → `adaptor_out` with one inner block, on `device`: for speed measurements only.
     ///
     /// # Errors
     /// [`BackendError::InvalidParams`] for an inconsistent shape.
@@ -423,8 +417,8 @@ impl RadioModel {
         config: RadioConfig,
         adaptor_hidden: usize,
         adaptor_out: usize,
+        device: &Device,
     ) -> Result<Self, BackendError> {
-        let device = Device::Cpu;
         let c = &config;
         let (e, p, h) = (c.embed_dim, c.patch_size, c.mlp_hidden);
         let mut shapes: Vec<(String, Vec<usize>)> = vec![
@@ -480,7 +474,7 @@ impl RadioModel {
         for (name, shape) in shapes {
             let fan_in = if shape.len() == 2 { shape[1] } else { 1 };
             let std = (1.0 / fan_in as f64).sqrt() as f32;
-            let t = Tensor::randn(0f32, std, shape, &device)
+            let t = Tensor::randn(0f32, std, shape, device)
                 .map_err(|e| BackendError::InvalidParams(e.to_string()))?;
             tensors.insert(name, t);
         }
@@ -488,7 +482,7 @@ impl RadioModel {
             adaptor_mlp: "v2".into(),
             ..config
         };
-        Self::from_weights(config, &Weights::new(tensors), device, PathBuf::new())
+        Self::from_weights(config, &Weights::new(tensors, device), PathBuf::new())
             .map_err(BackendError::InvalidParams)
     }
 

@@ -67,11 +67,11 @@ fn invalid(path: &Path, reason: impl Into<String>) -> BackendError {
 }
 
 impl SiglipText {
-    /// Loads `dir/config.json`, `dir/model.safetensors` and `dir/tokenizer.json`.
+    /// Loads `dir/config.json`, `dir/model.safetensors` and `dir/tokenizer.json` onto `device`.
     ///
     /// # Errors
     /// [`BackendError::InvalidModelFile`] naming the file that cannot be read or does not fit.
-    pub fn load(dir: &Path) -> Result<Self, BackendError> {
+    pub fn load(dir: &Path, device: &Device) -> Result<Self, BackendError> {
         let config_path = dir.join("config.json");
         let text = crate::model_files::read_text(&config_path)?;
         let config: siglip::TextConfig =
@@ -92,7 +92,7 @@ impl SiglipText {
             "whitespace" => false,
             other => return Err(invalid(&config_path, format!("text_clean {other:?}"))),
         };
-        let device = Device::Cpu;
+        let device = device.clone();
         let weights = dir.join("model.safetensors");
         let tensors = candle_core::safetensors::load(&weights, &device)
             .map_err(|e| invalid(&weights, format!("cannot read it: {e}")))?;

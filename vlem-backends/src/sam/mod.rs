@@ -44,6 +44,7 @@
 //! # refine = true
 //! # refine_points = 32
 //! # seed = 0
+//! # device = "cpu"                         # "cuda", "cuda:N" with feature `cuda`
 //! ```
 //!
 //! Weights: the official checkpoints converted to safetensors with their tensor names, by
@@ -63,7 +64,7 @@ pub mod vit;
 use std::cmp::Ordering;
 use std::path::{Path, PathBuf};
 
-use candle_core::{DType, Device, Tensor};
+use candle_core::{DType, Tensor};
 use candle_nn::VarBuilder;
 use serde::Deserialize;
 use vlem_core::{BuildContext, PixelRect, Region, RegionProposer, RgbImage, StageKind};
@@ -172,6 +173,9 @@ pub struct SamConfig {
     pub refine_points: usize,
     /// Seed of the refinement's sampling.
     pub seed: u64,
+    /// Where the network runs: `"cpu"` (default), `"cuda"` or `"cuda:N"` (feature `cuda`). The
+    /// mask post-processing stays on the CPU; each batch's masks cross once.
+    pub device: crate::ComputeDevice,
 }
 
 impl Default for SamConfig {
@@ -189,6 +193,7 @@ impl Default for SamConfig {
             refine: true,
             refine_points: 32,
             seed: 0,
+            device: crate::ComputeDevice::Cpu,
         }
     }
 }
@@ -400,7 +405,8 @@ impl SamProposer {
     /// # Errors
     /// [`BackendError::InvalidParams`] for bad or missing parameters,
     /// [`BackendError::MissingWeights`] naming the file and how to get it,
-    /// [`BackendError::InvalidModelFile`] for weights that do not fit the variant.
+    /// [`BackendError::InvalidModelFile`] for weights that do not fit the variant,
+    /// [`BackendError::DeviceUnavailable`] for a `device` that cannot run it here.
     pub fn from_config(config: SamConfig, ctx: &BuildContext) -> Result<Self, BackendError> {
         let params = config.params()?;
         let variant = config.variant;
@@ -426,7 +432,7 @@ impl SamProposer {
                 path,
             });
         }
-        let device = Device::Cpu;
+        let device = config.device.open()?;
         let invalid = |reason: String| BackendError::InvalidModelFile {
             path: path.clone(),
             reason,

@@ -1,0 +1,45 @@
+//! What the candle backends' golden tests share: the device they run on.
+//!
+//! The tests run on the CPU. `VLEM_TEST_DEVICE=cuda` (or `cuda:N`; set by `bench/gpu/check.sh`)
+//! runs the same goldens on a GPU of a build with feature `cuda`, where kernels sum in other
+//! orders: tolerances then widen to 1e-3 (the bar for f32 on a GPU).
+
+#![allow(
+    dead_code,
+    reason = "each test binary includes this module and uses part of it"
+)]
+
+use std::sync::OnceLock;
+
+use candle_core::Device;
+use vlem_backends::ComputeDevice;
+
+/// The environment variable naming the device the goldens run on.
+pub const DEVICE_ENV: &str = "VLEM_TEST_DEVICE";
+
+/// The configured device (`"cpu"` when unset), as a config's `device` key spells it.
+pub fn compute_device() -> ComputeDevice {
+    static DEVICE: OnceLock<ComputeDevice> = OnceLock::new();
+    *DEVICE.get_or_init(|| ComputeDevice::from_env(DEVICE_ENV).unwrap_or_else(|e| panic!("{e}")))
+}
+
+/// The device the goldens run on, opened.
+pub fn device() -> Device {
+    compute_device()
+        .open()
+        .unwrap_or_else(|e| panic!("{DEVICE_ENV}: {e}"))
+}
+
+/// The `device = "…"` line for a test's encoder or proposer section.
+pub fn device_line() -> String {
+    format!("device = \"{}\"", compute_device())
+}
+
+/// `cpu`, the tolerance of a comparison on the CPU; at least 1e-3 on a GPU.
+pub fn tolerance(cpu: f32) -> f32 {
+    if compute_device() == ComputeDevice::Cpu {
+        cpu
+    } else {
+        cpu.max(1e-3)
+    }
+}
