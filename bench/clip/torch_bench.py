@@ -15,31 +15,60 @@ import torch
 from transformers import CLIPModel
 
 
+def synchronize(device: str) -> None:
+    """Waits for the GPU's queued work, so that a timer reads the work done, not the launch."""
+    if device.startswith("cuda"):
+        torch.cuda.synchronize()
+
+
 def main() -> None:
     p = argparse.ArgumentParser()
     p.add_argument("model_dir")
     p.add_argument("--threads", type=int, default=1)
-    p.add_argument("--batch", type=int, nargs="+", default=[1, 16])
+    p.add_argument("--batch", type=int, nargs="*", default=[1, 16])
+    p.add_argument("--text", type=int, nargs="*", default=[],
+                   help="also time the text tower on this many 16-token texts (as clip_bench)")
     p.add_argument("--repeat", type=int, default=5)
+    p.add_argument("--device", default="cpu", help="cpu, cuda or cuda:N")
     args = p.parse_args()
     torch.set_num_threads(args.threads)
-    model = CLIPModel.from_pretrained(args.model_dir, dtype=torch.float32).eval()
+    model = CLIPModel.from_pretrained(args.model_dir, dtype=torch.float32).eval().to(args.device)
     size = model.config.vision_config.image_size
     gen = torch.Generator().manual_seed(0)
     for batch in args.batch:
-        x = torch.randn(batch, 3, size, size, generator=gen)
+        x = torch.randn(batch, 3, size, size, generator=gen).to(args.device)
         times = []
         with torch.inference_mode():
             model.get_image_features(pixel_values=x)
+            synchronize(args.device)
             for _ in range(args.repeat):
                 t = time.perf_counter()
                 model.get_image_features(pixel_values=x)
+                synchronize(args.device)
                 times.append(time.perf_counter() - t)
         best = min(times)
         print(
-            f"torch threads={args.threads} batch={batch}: best {best * 1e3:.0f} ms/call, "
-            f"mean {sum(times) / len(times) * 1e3:.0f} ms/call, {batch / best:.2f} images/s"
+            f"torch threads={args.threads} batch={batch}: best {best * 1e3:.1f} ms/call, "
+            f"mean {sum(times) / len(times) * 1e3:.1f} ms/call, {batch / best:.2f} images/s"
         )
+    time_text(model, args)
+
+
+def time_text(model, args):
+    """get_text_features on N texts of 16 tokens, the ids of clip_bench's `--text`."""
+    for n in args.text:
+        ids = torch.tensor([[1000 + 37 * t + i for i in range(16)] for t in range(n)])
+        ids = ids.to(args.device)
+        times = []
+        with torch.inference_mode():
+            model.get_text_features(input_ids=ids)
+            synchronize(args.device)
+            for _ in range(args.repeat):
+                t = time.perf_counter()
+                model.get_text_features(input_ids=ids)
+                synchronize(args.device)
+                times.append(time.perf_counter() - t)
+        print(f"torch threads={args.threads} text={n}x16: best {min(times) * 1e3:.1f} ms/call")
 
 
 if __name__ == "__main__":

@@ -20,6 +20,12 @@ import torch
 from transformers import DINOv3ViTConfig, DINOv3ViTModel
 
 
+def synchronize(device: str) -> None:
+    """Waits for the GPU's queued work, so that a timer reads the work done, not the launch."""
+    if device.startswith("cuda"):
+        torch.cuda.synchronize()
+
+
 def input_size(width: int, height: int, short_side: int, patch: int = 16) -> tuple:
     """As vlem's patch_aligned_size: short side to short_side, aspect kept, rounded to patches."""
     short, long = min(width, height), max(width, height)
@@ -33,6 +39,7 @@ def main() -> None:
     p.add_argument("--threads", type=int, default=1)
     p.add_argument("--short-side", type=int, nargs="+", default=[448])
     p.add_argument("--repeat", type=int, default=3)
+    p.add_argument("--device", default="cpu", help="cpu, cuda or cuda:N")
     args = p.parse_args()
     sys.path.insert(0, os.environ["DINOV3_SRC"])
     from dinov3.eval.text.vision_tower import VisionHead
@@ -42,22 +49,24 @@ def main() -> None:
         hidden_size=1024, intermediate_size=4096, num_hidden_layers=24, num_attention_heads=16,
         num_register_tokens=4, patch_size=16, layer_norm_eps=1e-5, rope_theta=100.0,
     )
-    backbone = DINOv3ViTModel(config).eval()
-    head = VisionHead(1024, 2048, 16, 2, 0.0, True, True, False).eval()
+    backbone = DINOv3ViTModel(config).eval().to(args.device)
+    head = VisionHead(1024, 2048, 16, 2, 0.0, True, True, False).eval().to(args.device)
     for side in args.short_side:
         width, height = input_size(640, 480, side)
         x = torch.randn(1, 3, height, width, generator=torch.Generator().manual_seed(0))
+        x = x.to(args.device)
         times = []
         with torch.inference_mode():
             for i in range(args.repeat + 1):
                 t = time.perf_counter()
                 head(backbone(pixel_values=x).last_hidden_state)
+                synchronize(args.device)
                 if i > 0:
                     times.append(time.perf_counter() - t)
         print(
             f"torch threads={args.threads} short side {side}: input {width}x{height} "
-            f"({width // 16 * (height // 16)} patches)  best {min(times) * 1e3:.0f} ms/frame, "
-            f"mean {sum(times) / len(times) * 1e3:.0f} ms/frame"
+            f"({width // 16 * (height // 16)} patches)  best {min(times) * 1e3:.1f} ms/frame, "
+            f"mean {sum(times) / len(times) * 1e3:.1f} ms/frame"
         )
 
 

@@ -10,7 +10,8 @@
 //!     --example dinov3_bench -- 448,320 3
 //! ```
 //! Arguments: the input short sides to time (comma-separated, multiples of 16; default 448),
-//! and the timed frames per size (default 3, after one warm-up frame).
+//! and the timed frames per size (default 3, after one warm-up frame). `VLEM_BENCH_DEVICE=cuda`
+//! runs it on a GPU (build with feature `cuda`).
 
 use std::collections::HashMap;
 use std::time::Instant;
@@ -53,7 +54,7 @@ fn put_norm(t: &mut HashMap<String, Tensor>, name: &str, width: usize) -> Result
 }
 
 /// ViT-L/16 in the hub layout (`facebook/dinov3-vitl16-pretrain-lvd1689m`).
-fn backbone() -> Result<Dinov3Backbone> {
+fn backbone(device: &Device) -> Result<Dinov3Backbone> {
     let c = Dinov3Config {
         hidden_size: 1024,
         intermediate_size: 4096,
@@ -107,11 +108,11 @@ fn backbone() -> Result<Dinov3Backbone> {
         put(&mut t, format!("{l}.layer_scale2.lambda1"), &[h], 1e-5, 0.0)?;
     }
     put_norm(&mut t, "norm", h)?;
-    Ok(Dinov3Backbone::from_tensors(&c, t)?)
+    Ok(Dinov3Backbone::from_tensors(&c, t, device)?)
 }
 
 /// The dino.txt heads in the released checkpoint's layout.
-fn heads(vocab: usize) -> Result<DinoTxtHeads> {
+fn heads(vocab: usize, device: &Device) -> Result<DinoTxtHeads> {
     let mut t = HashMap::new();
     let (w, hidden) = (1024, 2752);
     for i in 0..2 {
@@ -153,7 +154,7 @@ fn heads(vocab: usize) -> Result<DinoTxtHeads> {
     }
     put_norm(&mut t, &format!("{tb}.ln_final"), d)?;
     put_linear(&mut t, "text_model.head.linear_projection", d, 2048, false)?;
-    Ok(DinoTxtHeads::from_tensors(t, 16, None)?)
+    Ok(DinoTxtHeads::from_tensors(t, 16, None, device)?)
 }
 
 /// A 640 × 480 frame of smooth gradients.
@@ -182,6 +183,7 @@ fn main() -> Result<()> {
         .get(1)
         .map_or(Ok(3), |s| s.parse().context("bad frame count"))?;
     let threads = std::env::var("RAYON_NUM_THREADS").unwrap_or_else(|_| "all".to_owned());
+    let device = vlem_backends::ComputeDevice::from_env("VLEM_BENCH_DEVICE")?.open()?;
     println!("building random ViT-L/16 + dino.txt weights ...");
     // A merge list whose vocabulary has the released size (49408 = 512 + 48894 + 2) would need
     // the file; the tiny one times the text tower just as well at the same token count.
@@ -190,8 +192,8 @@ fn main() -> Result<()> {
     let image = frame()?;
     for side in sides {
         let encoder = Dinov3Encoder::new(
-            backbone()?,
-            heads(49408)?,
+            backbone(&device)?,
+            heads(49408, &device)?,
             tokenizer.clone(),
             side,
             vec!["{}".to_owned()],
@@ -207,7 +209,7 @@ fn main() -> Result<()> {
         encoder.encode_text("a photo of a chair")?;
         let text = start.elapsed().as_secs_f64() * 1e3;
         println!(
-            "threads {threads}  short side {side}: input {w}x{h} ({} patches)  {per_frame:.0} ms/frame  text query {text:.0} ms",
+            "threads {threads}  short side {side}: input {w}x{h} ({} patches)  {per_frame:.1} ms/frame  text query {text:.0} ms",
             (w / 16) * (h / 16)
         );
     }

@@ -1,16 +1,21 @@
 //! NARADIO speed: milliseconds per 640 x 480 frame through the RADIOv2.5 trunk with the NACLIP
 //! last block and the SigLIP adaptor, at full ViT-B/16 and ViT-L/16 size with random weights
 //! (speed does not depend on the values). The frame is fed as RayFronts feeds it: 640 x 480, a
-//! 40 x 30 patch grid. Threads: set `RAYON_NUM_THREADS`.
+//! 40 x 30 patch grid. Threads: set `RAYON_NUM_THREADS`; `VLEM_BENCH_DEVICE=cuda` runs it on a
+//! GPU (build with feature `cuda`).
 //!
 //! ```text
-//! RAYON_NUM_THREADS=1 cargo run --release -p vlem-backends --features naradio --example naradio_bench -- [b|l|both] [iterations]
+//! RAYON_NUM_THREADS=1 cargo run --release -p vlem-backends --features naradio --example naradio_bench -- [b|l|both] [iterations] [TEXT_DIR]
 //! ```
+//! With `TEXT_DIR` (the `text/` folder of `bench/naradio/make_random.py`'s output) it also times
+//! one new query through the full-size SigLIP text tower, with 80 templates and with one.
 
 use std::time::Instant;
 
-use candle_core::{Device, Tensor};
-use vlem_backends::naradio::{GaussianGrid, LastBlock, RadioConfig, RadioModel};
+use candle_core::Tensor;
+use vlem_backends::naradio::{
+    GaussianGrid, IMAGENET_TEMPLATES, LastBlock, RadioConfig, RadioModel, SiglipText,
+};
 
 fn config(embed_dim: usize, depth: usize, num_heads: usize) -> RadioConfig {
     RadioConfig {
@@ -44,7 +49,9 @@ fn main() -> anyhow::Result<()> {
     let args: Vec<String> = std::env::args().collect();
     let which = args.get(1).map_or("both", String::as_str);
     let iterations: usize = args.get(2).map_or(Ok(3), |s| s.parse())?;
+    let text_dir = args.get(3).map(std::path::PathBuf::from);
     let threads = std::env::var("RAYON_NUM_THREADS").unwrap_or_else(|_| "all".into());
+    let device = vlem_backends::ComputeDevice::from_env("VLEM_BENCH_DEVICE")?.open()?;
     let sizes: Vec<(&str, RadioConfig)> = [
         ("B/16", config(768, 12, 12)),
         ("L/16", config(1024, 24, 16)),
@@ -58,8 +65,8 @@ fn main() -> anyhow::Result<()> {
     .collect();
     for (name, cfg) in sizes {
         // The SigLIP adaptor of RADIOv2.5: into SO400M's 1152-d space.
-        let model = RadioModel::random(cfg, 1536, 1152)?;
-        let x = Tensor::rand(0f32, 1f32, (1, 3, 480, 640), &Device::Cpu)?;
+        let model = RadioModel::random(cfg, 1536, 1152, &device)?;
+        let x = Tensor::rand(0f32, 1f32, (1, 3, 480, 640), &device)?;
         let last = LastBlock::Naclip {
             std: 7.0,
             grid: GaussianGrid::Rayfronts,
@@ -70,6 +77,8 @@ fn main() -> anyhow::Result<()> {
             let out = model.forward(&x, last)?;
             let lang = model.adapt(&out.features)?;
             anyhow::ensure!(lang.dims() == [1, 1200, 1152], "shape {:?}", lang.dims());
+            // A GPU runs asynchronously: the time is that of the finished work.
+            device.synchronize()?;
             Ok(())
         };
         run()?; // warm-up: caches the position embeddings and the prior
@@ -79,7 +88,30 @@ fn main() -> anyhow::Result<()> {
         }
         let ms = start.elapsed().as_secs_f64() * 1000.0 / iterations as f64;
         println!(
-            "NARADIO {name} 640x480 (40x30 patches), threads {threads}: {ms:.0} ms/frame ({iterations} runs)"
+            "NARADIO {name} 640x480 (40x30 patches), threads {threads}: {ms:.1} ms/frame ({iterations} runs)"
+        );
+    }
+    if let Some(dir) = text_dir {
+        time_query(&dir, &device)?;
+    }
+    Ok(())
+}
+
+/// The cost of one new query through the SigLIP SO400M text tower of the folder `dir` (made by
+/// `bench/naradio/make_random.py`): RayFronts' 80 templates, then a single template.
+fn time_query(dir: &std::path::Path, device: &candle_core::Device) -> anyhow::Result<()> {
+    let text = SiglipText::load(dir, device)?;
+    let query = "coffee machine";
+    for templates in [IMAGENET_TEMPLATES.to_vec(), vec!["a photo of a {}."]] {
+        let prompts: Vec<String> = templates.iter().map(|t| t.replace("{}", query)).collect();
+        let prompts: Vec<&str> = prompts.iter().map(String::as_str).collect();
+        text.embed(&prompts[..1])?; // warm-up
+        let start = Instant::now();
+        text.embed(&prompts)?;
+        println!(
+            "NARADIO new query, {} template(s) through the SigLIP SO400M text tower: {:.0} ms",
+            prompts.len(),
+            start.elapsed().as_secs_f64() * 1000.0
         );
     }
     Ok(())

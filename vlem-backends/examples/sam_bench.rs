@@ -10,11 +10,11 @@
 //! RAYON_NUM_THREADS=2 cargo run --release -p vlem-backends --features sam --example sam_bench -- \
 //!     --variant mobile-sam --points-per-side 32,16 --refine on,off
 //! ```
+//! `VLEM_BENCH_DEVICE=cuda` runs the network on a GPU (build with feature `cuda`).
 
 use std::time::Instant;
 
 use anyhow::{Context, Result, bail};
-use candle_core::Device;
 use vlem_backends::sam::model::SamModel;
 use vlem_backends::sam::synthetic::SyntheticWeights;
 use vlem_backends::sam::{GeneratorParams, SamProposer, SamVariant};
@@ -82,16 +82,16 @@ fn main() -> Result<()> {
     }
 
     let threads = std::env::var("RAYON_NUM_THREADS").unwrap_or_else(|_| "all".to_owned());
+    let device = vlem_backends::ComputeDevice::from_env("VLEM_BENCH_DEVICE")?.open()?;
     let start = Instant::now();
     let model = match &weights {
         Some(path) => {
-            let tensors = candle_core::safetensors::load(path, &Device::Cpu)?;
-            let vb =
-                candle_nn::VarBuilder::from_tensors(tensors, candle_core::DType::F32, &Device::Cpu);
+            let tensors = candle_core::safetensors::load(path, &device)?;
+            let vb = candle_nn::VarBuilder::from_tensors(tensors, candle_core::DType::F32, &device);
             SamModel::new(vb, &variant.encoder())?
         }
         None => SamModel::new(
-            SyntheticWeights::new().var_builder(&Device::Cpu),
+            SyntheticWeights::new().var_builder(&device),
             &variant.encoder(),
         )?,
     };
@@ -117,7 +117,7 @@ fn main() -> Result<()> {
     let _ = model.decode_points(&emb, &points)?;
     let dec_ms = t.elapsed().as_secs_f64() * 1e3 / 32.0;
     println!(
-        "preprocess {pre_ms:.0} ms, image encoder {enc_ms:.0} ms, mask decoder {dec_ms:.1} ms per \
+        "preprocess {pre_ms:.0} ms, image encoder {enc_ms:.1} ms, mask decoder {dec_ms:.1} ms per \
          prompt (batch of 32)"
     );
 
