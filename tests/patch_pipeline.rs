@@ -106,3 +106,53 @@ fn check(name: &str, encoder_name: &str, dim: usize) {
         previous = Some(scores.clone());
     }
 }
+
+/// The real-time CPU configs of the patch encoders: the map builds, the encoder asks for the
+/// full-size model folder it names (none ships with the repository), and with the tiny test model
+/// swapped in the whole pipeline builds with the config's own keys.
+fn check_realtime_config(name: &str, tiny: &[(&str, toml::Value)]) {
+    let mut config = Config::from_file(&configs().join(name)).unwrap();
+    let ctx = BuildContext {
+        config_dir: configs(),
+        embedding_dim: None,
+    };
+    assert_eq!(config.pipeline.mode, vlem_core::config::Mode::RealTime);
+    let err = Pipeline::from_config(&config, &ctx)
+        .err()
+        .unwrap()
+        .to_string();
+    let named = config.encoder.as_ref().unwrap().params["model_dir"]
+        .as_str()
+        .unwrap()
+        .to_owned();
+    assert!(err.contains(named.trim_start_matches("../")), "{err}");
+    let encoder = config.encoder.as_mut().unwrap();
+    for (key, value) in tiny {
+        encoder.params.insert((*key).into(), value.clone());
+    }
+    Pipeline::from_config(&config, &ctx).unwrap();
+}
+
+#[cfg(all(feature = "naradio", feature = "voxel"))]
+#[test]
+fn realtime_cpu_naradio_config_builds_with_a_model_folder() {
+    check_realtime_config(
+        "realtime-cpu-naradio.toml",
+        &[("model_dir", "../vlem-backends/goldens/naradio/tiny".into())],
+    );
+}
+
+#[cfg(all(feature = "dinov3", feature = "voxel"))]
+#[test]
+fn realtime_cpu_dinov3_config_builds_with_a_model_folder() {
+    let tiny = "../vlem-backends/goldens/dinov3";
+    check_realtime_config(
+        "realtime-cpu-dinov3.toml",
+        &[
+            ("model_dir", format!("{tiny}/tiny").into()),
+            ("dinotxt_weights", format!("{tiny}/tiny-dinotxt.pth").into()),
+            ("bpe_vocab", format!("{tiny}/tiny-bpe.txt.gz").into()),
+            ("text_heads", 3.into()),
+        ],
+    );
+}
