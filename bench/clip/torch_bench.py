@@ -37,15 +37,7 @@ def main() -> None:
     gen = torch.Generator().manual_seed(0)
     for batch in args.batch:
         x = torch.randn(batch, 3, size, size, generator=gen).to(args.device)
-        times = []
-        with torch.inference_mode():
-            model.get_image_features(pixel_values=x)
-            synchronize(args.device)
-            for _ in range(args.repeat):
-                t = time.perf_counter()
-                model.get_image_features(pixel_values=x)
-                synchronize(args.device)
-                times.append(time.perf_counter() - t)
+        times = timed(lambda: model.get_image_features(pixel_values=x), args)
         best = min(times)
         print(
             f"torch threads={args.threads} batch={batch}: best {best * 1e3:.1f} ms/call, "
@@ -54,20 +46,26 @@ def main() -> None:
     time_text(model, args)
 
 
+def timed(call, args):
+    """The times of `args.repeat` calls of `call` after one warm-up, in inference mode."""
+    times = []
+    with torch.inference_mode():
+        call()
+        synchronize(args.device)
+        for _ in range(args.repeat):
+            t = time.perf_counter()
+            call()
+            synchronize(args.device)
+            times.append(time.perf_counter() - t)
+    return times
+
+
 def time_text(model, args):
     """get_text_features on N texts of 16 tokens, the ids of clip_bench's `--text`."""
     for n in args.text:
         ids = torch.tensor([[1000 + 37 * t + i for i in range(16)] for t in range(n)])
         ids = ids.to(args.device)
-        times = []
-        with torch.inference_mode():
-            model.get_text_features(input_ids=ids)
-            synchronize(args.device)
-            for _ in range(args.repeat):
-                t = time.perf_counter()
-                model.get_text_features(input_ids=ids)
-                synchronize(args.device)
-                times.append(time.perf_counter() - t)
+        times = timed(lambda: model.get_text_features(input_ids=ids), args)
         print(f"torch threads={args.threads} text={n}x16: best {min(times) * 1e3:.1f} ms/call")
 
 

@@ -15,6 +15,17 @@ use serde::{Deserialize, Deserializer};
 
 use crate::error::BackendError;
 
+// Opening a device needs candle: every candle backend brings it, and `cuda` alone does too.
+#[cfg(any(
+    feature = "clip",
+    feature = "dinov3",
+    feature = "naradio",
+    feature = "sam",
+    feature = "label-text",
+    feature = "cuda"
+))]
+mod open;
+
 /// How to get a build that can run on a GPU, for the messages that say this one cannot.
 pub const CUDA_BUILD_HINT: &str = "build vlem with `--features cuda` (README, \"On an NVIDIA \
      GPU\": `source bench/gpu/cuda-toolchain.sh --link` first), or set `device = \"cpu\"`";
@@ -87,95 +98,6 @@ impl ComputeDevice {
             _ => Ok(Self::Cpu),
         }
     }
-
-    /// Opens the device for candle.
-    ///
-    /// # Errors
-    /// [`BackendError::DeviceUnavailable`] when the build has no `cuda` feature, no NVIDIA driver
-    /// or GPU answers, the index is past the last GPU, or the GPU's compute capability is not one
-    /// the build's kernels run on.
-    #[cfg(any(
-        feature = "clip",
-        feature = "dinov3",
-        feature = "naradio",
-        feature = "sam",
-        feature = "label-text",
-        feature = "cuda"
-    ))]
-    pub fn open(self) -> Result<candle_core::Device, BackendError> {
-        match self {
-            Self::Cpu => Ok(candle_core::Device::Cpu),
-            Self::Cuda(index) => open_cuda(self, index),
-        }
-    }
-}
-
-#[cfg(all(
-    any(
-        feature = "clip",
-        feature = "dinov3",
-        feature = "naradio",
-        feature = "sam",
-        feature = "label-text"
-    ),
-    not(feature = "cuda")
-))]
-fn open_cuda(asked: ComputeDevice, _index: usize) -> Result<candle_core::Device, BackendError> {
-    Err(BackendError::DeviceUnavailable {
-        asked: asked.to_string(),
-        found: "this build of vlem has no CUDA support (the `cuda` feature is off)".to_owned(),
-        hint: CUDA_BUILD_HINT.to_owned(),
-    })
-}
-
-#[cfg(feature = "cuda")]
-fn open_cuda(asked: ComputeDevice, index: usize) -> Result<candle_core::Device, BackendError> {
-    use candle_core::cuda::cudarc::driver::CudaContext;
-
-    let unavailable = |found: String, hint: &str| BackendError::DeviceUnavailable {
-        asked: asked.to_string(),
-        found,
-        hint: hint.to_owned(),
-    };
-    let count = CudaContext::device_count().map_err(|e| {
-        unavailable(
-            format!("the NVIDIA driver did not start ({e})"),
-            "check `nvidia-smi`; a driver for CUDA 13.0 or newer is needed",
-        )
-    })?;
-    let count = usize::try_from(count).unwrap_or(0);
-    if index >= count {
-        return Err(unavailable(
-            match count {
-                0 => "the driver sees no CUDA GPU".to_owned(),
-                1 => "the driver sees 1 CUDA GPU, cuda:0".to_owned(),
-                n => format!("the driver sees {n} CUDA GPUs, cuda:0 to cuda:{}", n - 1),
-            },
-            "set `device` to one of them, or `CUDA_VISIBLE_DEVICES` to make it visible",
-        ));
-    }
-    let context = CudaContext::new(index)
-        .map_err(|e| unavailable(format!("it did not open ({e})"), "check `nvidia-smi`"))?;
-    let name = context.name().unwrap_or_else(|_| "the GPU".to_owned());
-    if let (Ok((major, minor)), Some(built)) =
-        (context.compute_capability(), kernels_compute_capability())
-        && let Some(reason) = capability_mismatch(built, major, minor)
-    {
-        return Err(unavailable(
-            format!("it is {name}, compute capability {major}.{minor}, and {reason}"),
-            &format!(
-                "rebuild with CUDA_COMPUTE_CAP={major}{minor} (cargo then rebuilds candle's \
-                 kernels)"
-            ),
-        ));
-    }
-    drop(context);
-    candle_core::Device::new_cuda(index).map_err(|e| {
-        unavailable(
-            format!("{name} did not open in candle ({e})"),
-            "check `nvidia-smi`",
-        )
-    })
 }
 
 /// Why kernels compiled for `built` (`CUDA_COMPUTE_CAP`, e.g. "90") do not run on a GPU of
@@ -260,24 +182,5 @@ mod tests {
         assert_eq!(capability_mismatch("89", 9, 0), None);
         assert!(capability_mismatch("89", 8, 6).is_some());
         assert_eq!(capability_mismatch("not a number", 8, 6), None);
-    }
-
-    #[cfg(all(
-        any(
-            feature = "clip",
-            feature = "dinov3",
-            feature = "naradio",
-            feature = "sam",
-            feature = "label-text"
-        ),
-        not(feature = "cuda")
-    ))]
-    #[test]
-    fn asking_for_a_gpu_without_the_cuda_feature_names_both() {
-        let error = ComputeDevice::Cuda(1).open().err().map(|e| e.to_string());
-        let error = error.unwrap_or_default();
-        assert!(error.contains("cuda:1"), "{error}");
-        assert!(error.contains("no CUDA support"), "{error}");
-        assert!(error.contains("--features cuda"), "{error}");
     }
 }
