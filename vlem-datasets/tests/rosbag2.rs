@@ -303,3 +303,20 @@ fn a_corrupt_mcap_file_is_an_error_not_an_allocation() {
     };
     assert!(err.contains("cannot read MCAP"), "{err}");
 }
+
+/// A 5.0 kB MCAP file the fuzzer found whose zstd chunk stalls before its declared size: the
+/// reader once looped on it without end; now a clean error, quickly.
+#[test]
+fn a_stalled_compressed_chunk_is_an_error_not_a_hang() {
+    let file = bag("fuzz-stalled-zstd-chunk.mcap");
+    let (done, result) = std::sync::mpsc::channel();
+    std::thread::spawn(move || {
+        let outcome = open(&raw("/raw/rgb8", "/raw/depth_16uc1"), &file).map(|_| ());
+        let _ = done.send(outcome.map_err(|e| e.to_string()));
+    });
+    match result.recv_timeout(std::time::Duration::from_secs(60)) {
+        Ok(Ok(())) => panic!("the corrupt file opened"),
+        Ok(Err(err)) => assert!(err.contains("cannot read MCAP"), "{err}"),
+        Err(_) => panic!("opening the file did not finish within 60 s"),
+    }
+}
