@@ -111,10 +111,13 @@ fn main() -> Result<()> {
     let pre_ms = t.elapsed().as_secs_f64() * 1e3;
     let t = Instant::now();
     let emb = model.embed(&pre.tensor)?;
+    // A GPU runs asynchronously: the times are those of the finished work.
+    device.synchronize()?;
     let enc_ms = t.elapsed().as_secs_f64() * 1e3;
     let points: Vec<[f32; 2]> = (0..32).map(|i| [16.0 + 30.0 * i as f32, 300.0]).collect();
     let t = Instant::now();
     let _ = model.decode_points(&emb, &points)?;
+    device.synchronize()?;
     let dec_ms = t.elapsed().as_secs_f64() * 1e3 / 32.0;
     println!(
         "preprocess {pre_ms:.0} ms, image encoder {enc_ms:.1} ms, mask decoder {dec_ms:.1} ms per \
