@@ -61,7 +61,8 @@ pub struct OdometryConfig {
     /// See `relative_rmse`. Default 1e-6.
     pub relative_fitness: f64,
     /// A level also stops early when an update moves no point by more than this many metres
-    /// (an extra test Open3D does not have; 0 disables it). Default 1e-4 (0.1 mm).
+    /// at full resolution, `2^level` times this at pyramid level `level` (an extra test Open3D
+    /// does not have; 0 disables it). Default 1e-4 (0.1 mm).
     pub min_update: f64,
     /// A frame with valid depth in fewer than this fraction of its pixels is lost. Default 0.05.
     pub min_valid_depth_fraction: f64,
