@@ -339,12 +339,7 @@ impl<'g> PixelGrid<'g> {
                 return;
             };
             for (cell, &ray_x) in cells.iter().zip(ray_x) {
-                let d = [
-                    cell.depth * ray_x - c[0],
-                    cell.depth * ray_y - c[1],
-                    cell.depth - c[2],
-                ];
-                let d2 = d[0] * d[0] + d[1] * d[1] + d[2] * d[2];
+                let d2 = ray_distance2(cell.depth, ray_x, ray_y, c);
                 *nearest = (*nearest).min(Candidate::new(d2, cell.index));
             }
         }
@@ -354,13 +349,16 @@ impl<'g> PixelGrid<'g> {
     /// cell `(cu, cv)`; NaN for a NaN depth.
     #[inline]
     fn distance2(&self, depth: f32, cu: usize, cv: usize, c: [f32; 3]) -> f32 {
-        let d = [
-            depth * self.ray_x[cu] - c[0],
-            depth * self.ray_y[cv] - c[1],
-            depth - c[2],
-        ];
-        d[0] * d[0] + d[1] * d[1] + d[2] * d[2]
+        ray_distance2(depth, self.ray_x[cu], self.ray_y[cv], c)
     }
+}
+
+/// The squared distance from camera-frame point `c` to the point at `depth` on the ray
+/// `(ray_x, ray_y, 1)`; NaN for a NaN depth.
+#[inline]
+fn ray_distance2(depth: f32, ray_x: f32, ray_y: f32, c: [f32; 3]) -> f32 {
+    let d = [depth * ray_x - c[0], depth * ray_y - c[1], depth - c[2]];
+    d[0] * d[0] + d[1] * d[1] + d[2] * d[2]
 }
 
 #[cfg(test)]
