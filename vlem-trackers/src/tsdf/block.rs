@@ -92,8 +92,8 @@ impl Voxel {
 pub(crate) struct Block {
     /// Block coordinate: the block holds global voxel indices `coord * 8 .. coord * 8 + 7`.
     pub coord: [i32; 3],
-    /// Whether a voxel was ever fused to within half the truncation distance of a surface
-    /// (`|tsdf| < 0.5`); ray casts start marching only near such blocks.
+    /// Whether a voxel was ever fused to within a fifth of the truncation distance of a
+    /// surface (`|tsdf| < 0.2`); ray casts start marching only near such blocks.
     pub near_surface: bool,
     /// The TSDF in 8 bits (see [`march_value`]; [`MARCH_UNOBSERVED`] while unobserved),
     /// indexed by [`brick_index`]: all a marching ray reads.

@@ -11,11 +11,15 @@ use super::{Camera32, TsdfVolume, floor_i32};
 use vlem_core::RigidF32;
 
 /// A pixel as the update reads it: the depth (−∞ where it must not be fused) and colour side by
-/// side, so one cache line serves both.
+/// side, so one cache line serves both. The layout is fixed and has no padding (the spare byte
+/// is zero) because [`wide::update_block`] gathers the depth and the four colour bytes of eight
+/// pixels at a time by their offsets.
 #[derive(Clone, Copy)]
+#[repr(C)]
 struct Pixel {
     depth: f32,
     rgb: [u8; 3],
+    spare: u8,
 }
 
 /// Everything the per-block update reads, in `f32`.
@@ -53,6 +57,7 @@ impl TsdfVolume {
                     f32::NEG_INFINITY
                 },
                 rgb: [c[0], c[1], c[2]],
+                spare: 0,
             })
             .collect();
         let params = FuseParams {
@@ -77,7 +82,7 @@ impl TsdfVolume {
         touched
             .par_iter_mut()
             .with_min_len(16)
-            .for_each(|(_, block)| update_block(block, &params));
+            .for_each(|(_, block)| wide::update_block(block, &params));
     }
 
     /// A fresh stamp for the blocks touched by this pass.
@@ -213,45 +218,74 @@ fn image_order(block: &Block, p: &FuseParams<'_>) -> u32 {
     v * (tiles_x as u32 + 1) + u
 }
 
+/// What the update of one block shares between its voxels, derived once per block: the camera
+/// coordinates of the block's first voxel and of one voxel step along each axis, and the frame's
+/// constants in the form the update uses them.
+struct BlockFrame {
+    origin: [f32; 3],
+    dx: [f32; 3],
+    dy: [f32; 3],
+    dz: [f32; 3],
+    inv_trunc: f32,
+    neg_trunc: f32,
+    width: f32,
+    height: f32,
+    /// The principal point plus half a pixel: pixel centres are at integer coordinates, so a
+    /// projection rounds by adding 0.5 and truncating.
+    cx: f32,
+    cy: f32,
+    max_weight: f32,
+}
+
+impl BlockFrame {
+    fn new(coord: [i32; 3], p: &FuseParams<'_>) -> Self {
+        let vs = p.voxel_size;
+        let base = coord.map(|c| (c * BLOCK_RES as i32) as f32 * vs);
+        Self {
+            origin: p.pose.inverse_apply(base),
+            dx: p.pose.inverse_rotate([vs, 0.0, 0.0]),
+            dy: p.pose.inverse_rotate([0.0, vs, 0.0]),
+            dz: p.pose.inverse_rotate([0.0, 0.0, vs]),
+            inv_trunc: 1.0 / p.trunc,
+            neg_trunc: -p.trunc,
+            width: p.camera.width as f32,
+            height: p.camera.height as f32,
+            cx: p.camera.cx + 0.5,
+            cy: p.camera.cy + 0.5,
+            max_weight: f32::from(p.max_weight),
+        }
+    }
+
+    /// Camera coordinates of voxel `(0, y, z)` of the block.
+    #[inline]
+    fn row(&self, y: usize, z: usize) -> [f32; 3] {
+        let (fy, fz) = (y as f32, z as f32);
+        [0, 1, 2].map(|a| self.origin[a] + fy * self.dy[a] + fz * self.dz[a])
+    }
+}
+
 /// Projective TSDF update of every voxel of one block. Each row of 8 voxels is projected in a
-/// branch-free pass (which the compiler vectorises), then updated voxel by voxel.
+/// branch-free pass (which the compiler vectorises), then updated voxel by voxel. This is the
+/// plain version; [`wide::update_block`] does the same eight voxels at a time.
 fn update_block(block: &mut Block, p: &FuseParams<'_>) {
     const N: usize = BLOCK_RES;
     let cam = &p.camera;
-    let vs = p.voxel_size;
-    let base = block.coord.map(|c| (c * BLOCK_RES as i32) as f32 * vs);
-    let origin = p.pose.inverse_apply(base);
-    let dx = p.pose.inverse_rotate([vs, 0.0, 0.0]);
-    let dy = p.pose.inverse_rotate([0.0, vs, 0.0]);
-    let dz = p.pose.inverse_rotate([0.0, 0.0, vs]);
-    let inv_trunc = 1.0 / p.trunc;
-    let neg_trunc = -p.trunc;
-    let width = cam.width as f32;
-    let height = cam.height as f32;
-    // Pixel centres are at integer coordinates: round by adding 0.5 and truncating.
-    let cx = cam.cx + 0.5;
-    let cy = cam.cy + 0.5;
-    let max_weight = f32::from(p.max_weight);
+    let f = BlockFrame::new(block.coord, p);
     let no_pixel = cam.width * cam.height;
     let mut near_surface = false;
     for z in 0..N {
         for y in 0..N {
-            let (fy, fz) = (y as f32, z as f32);
-            let row = [
-                origin[0] + fy * dy[0] + fz * dz[0],
-                origin[1] + fy * dy[1] + fz * dz[1],
-                origin[2] + fy * dy[2] + fz * dz[2],
-            ];
+            let row = f.row(y, z);
             // Project: the pixel index, or `no_pixel` outside the image.
             let mut pixel = [no_pixel; N];
             let mut voxel_z = [0.0_f32; N];
             for x in 0..N {
                 let fx = x as f32;
-                let pz = row[2] + fx * dx[2];
+                let pz = row[2] + fx * f.dx[2];
                 let inv_z = 1.0 / pz;
-                let uf = cam.fx * (row[0] + fx * dx[0]) * inv_z + cx;
-                let vf = cam.fy * (row[1] + fx * dx[1]) * inv_z + cy;
-                let inside = pz > 0.0 && uf >= 0.0 && vf >= 0.0 && uf < width && vf < height;
+                let uf = cam.fx * (row[0] + fx * f.dx[0]) * inv_z + f.cx;
+                let vf = cam.fy * (row[1] + fx * f.dx[1]) * inv_z + f.cy;
+                let inside = pz > 0.0 && uf >= 0.0 && vf >= 0.0 && uf < f.width && vf < f.height;
                 // Non-negative and below the image size where used, so the casts are exact
                 // there (and saturate elsewhere). Via i32, which x86-64 converts to in one
                 // instruction; a float to usize conversion takes several.
@@ -267,11 +301,11 @@ fn update_block(block: &mut Block, p: &FuseParams<'_>) {
                 };
                 // Unusable depths are -inf, so they fail this test too.
                 let sdf = px.depth - voxel_z[x];
-                let in_band = sdf >= neg_trunc;
+                let in_band = sdf >= f.neg_trunc;
                 if !in_band {
                     continue;
                 }
-                let observed = (sdf * inv_trunc).min(1.0);
+                let observed = (sdf * f.inv_trunc).min(1.0);
                 let i = (first + x) % BLOCK_VOXELS;
                 let w_old = f32::from(block.weight[i]);
                 let inv_w = 1.0 / (w_old + 1.0);
@@ -279,17 +313,354 @@ fn update_block(block: &mut Block, p: &FuseParams<'_>) {
                 let fused = (block.tsdf[i] * w_old + observed) * inv_w;
                 block.tsdf[i] = fused;
                 // In [1, max_weight] <= 65535.
-                block.weight[i] = (w_old + 1.0).min(max_weight) as u16;
+                block.weight[i] = (w_old + 1.0).min(f.max_weight) as u16;
                 for (channel, &c) in block.rgb.iter_mut().zip(&px.rgb) {
                     let mean =
                         (f32::from(channel[i]) * w_old + f32::from(c) * COLOUR_SCALE) * inv_w;
                     // In [0, 255 * 256]: fits u16.
                     channel[i] = (mean + 0.5) as u16;
                 }
-                near_surface |= fused.abs() < 0.2;
+                near_surface |= fused.abs() < NEAR_SURFACE;
                 block.march[brick_index(x, y, z) % BLOCK_VOXELS] = march_value(fused);
             }
         }
     }
     block.near_surface |= near_surface;
+}
+
+/// A fused TSDF below this in magnitude marks its block as near a surface.
+const NEAR_SURFACE: f32 = 0.2;
+
+/// [`update_block`] eight voxels at a time, in AVX2 where the CPU has it.
+///
+/// Why it exists: the update is most of a frame-to-model frame's integration (17 of 19 ms on the
+/// shared sequence, BENCHMARKS.md), and the plain version, though its projection vectorises,
+/// updates voxel by voxel behind a branch on whether each is in the truncation band, which goes
+/// either way within a row near a surface. A block row is 8 voxels, one 256-bit register: here the
+/// row's depths and colours are gathered, the band is a lane mask, and every field of the row is
+/// blended and stored at once. The lanes do the plain version's operations in its order (no fused
+/// multiply-adds), so the volume is the same bit for bit (tested below). `unsafe` here is the
+/// calls into the AVX2 build, the gathers from the frame's pixels and the loads and stores of
+/// 8-voxel rows.
+mod wide {
+    use super::{Block, FuseParams};
+
+    /// Updates `block` from the frame in `p`: the AVX2 build where the CPU has it, the plain
+    /// [`super::update_block`] elsewhere.
+    pub(super) fn update_block(block: &mut Block, p: &FuseParams<'_>) {
+        #[cfg(target_arch = "x86_64")]
+        if std::arch::is_x86_feature_detected!("avx2") && avx2::gathers_reach_every_pixel(p) {
+            #[allow(
+                unsafe_code,
+                reason = "calls a function built for AVX2, on a CPU just found to have it"
+            )]
+            // SAFETY: `avx2::update_block` needs AVX2 and nothing else, and the CPU has it.
+            unsafe {
+                avx2::update_block(block, p);
+            }
+            return;
+        }
+        super::update_block(block, p);
+    }
+
+    #[cfg(target_arch = "x86_64")]
+    #[allow(
+        unsafe_code,
+        reason = "AVX2 gathers, loads and stores take raw pointers; each says why it stays in bounds"
+    )]
+    pub(super) mod avx2 {
+        use std::arch::x86_64::*;
+        use std::mem::offset_of;
+
+        use super::super::super::block::{
+            BLOCK_RES, Block, COLOUR_SCALE, MARCH_SCALE, brick_index,
+        };
+        use super::super::{BlockFrame, FuseParams, NEAR_SURFACE, Pixel};
+
+        /// Whether every pixel index of the frame fits the gathers' 32-bit lane offsets and the
+        /// pixel table holds the whole image (it always does; checked so that a lane inside the
+        /// image cannot read past the table).
+        pub fn gathers_reach_every_pixel(p: &FuseParams<'_>) -> bool {
+            let pixels = p.camera.width * p.camera.height;
+            p.pixels.len() == pixels && i32::try_from(pixels).is_ok()
+        }
+
+        /// The 8 values at `row` as a 256-bit vector.
+        #[target_feature(enable = "avx2")]
+        fn load_f32(row: &[f32; 8]) -> __m256 {
+            // SAFETY: reads the 32 bytes of `row`; `loadu` needs no alignment.
+            unsafe { _mm256_loadu_ps(row.as_ptr()) }
+        }
+
+        #[target_feature(enable = "avx2")]
+        fn store_f32(row: &mut [f32; 8], v: __m256) {
+            // SAFETY: writes the 32 bytes of `row`, which we hold mutably.
+            unsafe { _mm256_storeu_ps(row.as_mut_ptr(), v) }
+        }
+
+        /// The 8 values at `row`, widened to 32-bit lanes.
+        #[target_feature(enable = "avx2")]
+        fn load_u16(row: &[u16; 8]) -> __m256i {
+            // SAFETY: reads the 16 bytes of `row`; `loadu` needs no alignment.
+            _mm256_cvtepu16_epi32(unsafe { _mm_loadu_si128(row.as_ptr().cast()) })
+        }
+
+        /// Narrows 8 lanes, each in `0..=65535`, into `row`.
+        #[target_feature(enable = "avx2")]
+        fn store_u16(row: &mut [u16; 8], v: __m256i) {
+            // `packus` narrows within each 128-bit half: pack the two halves against each other.
+            let narrow =
+                _mm_packus_epi32(_mm256_castsi256_si128(v), _mm256_extracti128_si256::<1>(v));
+            // SAFETY: writes the 16 bytes of `row`, which we hold mutably.
+            unsafe { _mm_storeu_si128(row.as_mut_ptr().cast(), narrow) }
+        }
+
+        /// `super::super::update_block`, the voxels of a row in the lanes of a vector.
+        ///
+        /// # Safety
+        /// The CPU must have AVX2, and [`gathers_reach_every_pixel`] must hold for `p`.
+        #[target_feature(enable = "avx2")]
+        pub unsafe fn update_block(block: &mut Block, p: &FuseParams<'_>) {
+            const N: usize = BLOCK_RES;
+            let cam = &p.camera;
+            let f = BlockFrame::new(block.coord, p);
+            let splat = _mm256_set1_ps;
+            let lanes = _mm256_setr_ps(0.0, 1.0, 2.0, 3.0, 4.0, 5.0, 6.0, 7.0);
+            // `x * dx`, for the lanes' x.
+            let step = f.dx.map(|d| _mm256_mul_ps(lanes, splat(d)));
+            let (one, zero) = (splat(1.0), _mm256_setzero_ps());
+            let sign = splat(-0.0);
+            let width_i = _mm256_set1_epi32(cam.width as i32);
+            let band_edge = splat(f.neg_trunc);
+            let pixels = p.pixels.as_ptr();
+            let depths = pixels.cast::<f32>();
+            // The colour bytes and the zero spare byte after them, as one 32-bit value.
+            let colours = pixels
+                .cast::<u8>()
+                .wrapping_add(offset_of!(Pixel, rgb))
+                .cast::<i32>();
+            let Block {
+                tsdf,
+                weight,
+                rgb,
+                march,
+                ..
+            } = block;
+            let (tsdf, _) = tsdf.as_chunks_mut::<N>();
+            let (weight, _) = weight.as_chunks_mut::<N>();
+            let [red, green, blue] = rgb;
+            let mut channels = [red, green, blue].map(|c| c.as_chunks_mut::<N>().0);
+            let (march, _) = march.as_chunks_mut::<4>();
+            let mut near_surface = 0;
+            for z in 0..N {
+                for y in 0..N {
+                    let row = f.row(y, z);
+                    let pz = _mm256_add_ps(splat(row[2]), step[2]);
+                    let inv_z = _mm256_div_ps(one, pz);
+                    let project = |focal: f32, start: f32, step: __m256, centre: f32| {
+                        let along = _mm256_mul_ps(splat(focal), _mm256_add_ps(splat(start), step));
+                        _mm256_add_ps(_mm256_mul_ps(along, inv_z), splat(centre))
+                    };
+                    let uf = project(cam.fx, row[0], step[0], f.cx);
+                    let vf = project(cam.fy, row[1], step[1], f.cy);
+                    let inside = _mm256_and_ps(
+                        _mm256_and_ps(
+                            _mm256_cmp_ps::<_CMP_GT_OQ>(pz, zero),
+                            _mm256_and_ps(
+                                _mm256_cmp_ps::<_CMP_GE_OQ>(uf, zero),
+                                _mm256_cmp_ps::<_CMP_GE_OQ>(vf, zero),
+                            ),
+                        ),
+                        _mm256_and_ps(
+                            _mm256_cmp_ps::<_CMP_LT_OQ>(uf, splat(f.width)),
+                            _mm256_cmp_ps::<_CMP_LT_OQ>(vf, splat(f.height)),
+                        ),
+                    );
+                    if _mm256_movemask_ps(inside) == 0 {
+                        continue;
+                    }
+                    let ui = _mm256_max_epi32(_mm256_cvttps_epi32(uf), _mm256_setzero_si256());
+                    let vi = _mm256_max_epi32(_mm256_cvttps_epi32(vf), _mm256_setzero_si256());
+                    let index = _mm256_add_epi32(_mm256_mullo_epi32(vi, width_i), ui);
+                    // SAFETY: only lanes inside the image are read, and there `index` is a
+                    // pixel of the image (u < width, v < height), below `p.pixels.len()` by
+                    // `gathers_reach_every_pixel`; a `Pixel` is 8 bytes with the depth first.
+                    let depth = unsafe {
+                        _mm256_mask_i32gather_ps::<8>(
+                            splat(f32::NEG_INFINITY),
+                            depths,
+                            index,
+                            inside,
+                        )
+                    };
+                    // Unusable depths are -inf, and lanes outside the image read -inf: neither
+                    // passes the band test.
+                    let sdf = _mm256_sub_ps(depth, pz);
+                    let in_band = _mm256_cmp_ps::<_CMP_GE_OQ>(sdf, band_edge);
+                    if _mm256_movemask_ps(in_band) == 0 {
+                        continue;
+                    }
+                    let band = _mm256_castps_si256(in_band);
+                    let observed = _mm256_min_ps(_mm256_mul_ps(sdf, splat(f.inv_trunc)), one);
+                    let r = y | z << 3;
+                    let w_old_int = load_u16(&weight[r]);
+                    let w_old = _mm256_cvtepi32_ps(w_old_int);
+                    let w_new = _mm256_add_ps(w_old, one);
+                    let inv_w = _mm256_div_ps(one, w_new);
+                    let t_old = load_f32(&tsdf[r]);
+                    // An unobserved voxel has weight 0, so its placeholder value drops out.
+                    let fused =
+                        _mm256_mul_ps(_mm256_add_ps(_mm256_mul_ps(t_old, w_old), observed), inv_w);
+                    store_f32(&mut tsdf[r], _mm256_blendv_ps(t_old, fused, in_band));
+                    let capped = _mm256_cvttps_epi32(_mm256_min_ps(w_new, splat(f.max_weight)));
+                    store_u16(&mut weight[r], _mm256_blendv_epi8(w_old_int, capped, band));
+                    // SAFETY: the band's lanes are inside the image (see the depth gather); the
+                    // 4 bytes at the colour's offset are the colour and the spare byte.
+                    let rgbx = unsafe {
+                        _mm256_mask_i32gather_epi32::<8>(
+                            _mm256_setzero_si256(),
+                            colours,
+                            index,
+                            band,
+                        )
+                    };
+                    for (k, channel) in channels.iter_mut().enumerate() {
+                        let shift = _mm256_set1_epi32(8 * k as i32);
+                        let c = _mm256_and_si256(
+                            _mm256_srlv_epi32(rgbx, shift),
+                            _mm256_set1_epi32(0xff),
+                        );
+                        let old_int = load_u16(&channel[r]);
+                        let mean = _mm256_mul_ps(
+                            _mm256_add_ps(
+                                _mm256_mul_ps(_mm256_cvtepi32_ps(old_int), w_old),
+                                _mm256_mul_ps(_mm256_cvtepi32_ps(c), splat(COLOUR_SCALE)),
+                            ),
+                            inv_w,
+                        );
+                        let rounded = _mm256_cvttps_epi32(_mm256_add_ps(mean, splat(0.5)));
+                        store_u16(&mut channel[r], _mm256_blendv_epi8(old_int, rounded, band));
+                    }
+                    let magnitude = _mm256_andnot_ps(sign, fused);
+                    let near = _mm256_cmp_ps::<_CMP_LT_OQ>(magnitude, splat(NEAR_SURFACE));
+                    near_surface |= _mm256_movemask_ps(_mm256_and_ps(near, in_band));
+                    // `march_value`: clamp, scale, round half away from zero, truncate.
+                    let q = _mm256_mul_ps(
+                        _mm256_max_ps(_mm256_min_ps(fused, one), splat(-1.0)),
+                        splat(MARCH_SCALE),
+                    );
+                    let half = _mm256_or_ps(splat(0.5), _mm256_and_ps(q, sign));
+                    let level = _mm256_cvttps_epi32(_mm256_add_ps(q, half));
+                    // Narrow to bytes (in -126..=126, and the mask's -1 and 0, survive the
+                    // saturating packs); lanes 0..4 and 4..8 lie in neighbouring bricks.
+                    let bytes = |v: __m256i| {
+                        let words = _mm_packs_epi32(
+                            _mm256_castsi256_si128(v),
+                            _mm256_extracti128_si256::<1>(v),
+                        );
+                        _mm_packs_epi16(words, words)
+                    };
+                    let (low, high) = (brick_index(0, y, z) / 4, brick_index(4, y, z) / 4);
+                    let word = |b: [i8; 4]| u32::from_le_bytes(b.map(|v| v as u8));
+                    let old = u64::from(word(march[low])) | u64::from(word(march[high])) << 32;
+                    let merged =
+                        _mm_blendv_epi8(_mm_cvtsi64_si128(old as i64), bytes(level), bytes(band));
+                    let new = _mm_cvtsi128_si64(merged) as u64;
+                    march[low] = (new as u32).to_le_bytes().map(|v| v as i8);
+                    march[high] = ((new >> 32) as u32).to_le_bytes().map(|v| v as i8);
+                }
+            }
+            block.near_surface |= near_surface != 0;
+        }
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use nalgebra::{Isometry3, Translation3, UnitQuaternion, Vector3};
+
+    use super::*;
+
+    /// A small xorshift generator: the test needs varied inputs, not good randomness.
+    struct Noise(u64);
+
+    impl Noise {
+        fn next(&mut self) -> f32 {
+            self.0 ^= self.0 << 13;
+            self.0 ^= self.0 >> 7;
+            self.0 ^= self.0 << 17;
+            (self.0 >> 40) as f32 / (1u64 << 24) as f32
+        }
+    }
+
+    /// A frame of random depths in 0.3–1.5 m (a tenth unusable) and random colours.
+    fn random_pixels(noise: &mut Noise, count: usize) -> Vec<Pixel> {
+        (0..count)
+            .map(|_| Pixel {
+                depth: if noise.next() < 0.1 {
+                    f32::NEG_INFINITY
+                } else {
+                    0.3 + 1.2 * noise.next()
+                },
+                rgb: [0; 3].map(|_| (noise.next() * 256.0) as u8),
+                spare: 0,
+            })
+            .collect()
+    }
+
+    /// The wide update leaves every field of every block as the plain one does, bit for bit,
+    /// over several frames (so weights grow, and reach a low cap), with blocks inside, across
+    /// the edge of and outside the view, and unusable depths.
+    #[test]
+    fn wide_update_matches_the_plain_one_bit_for_bit() {
+        let mut noise = Noise(0x9e37_79b9_7f4a_7c15);
+        let k = Intrinsics::new(64, 48, 50.0, 50.0, 31.5, 23.5).unwrap();
+        let coords: Vec<[i32; 3]> = (-4..4)
+            .flat_map(|x| (-3..3).flat_map(move |y| (1..10).map(move |z| [x, y, z])))
+            .collect();
+        let mut plain: Vec<Block> = coords.iter().map(|&c| *Block::boxed(c)).collect();
+        let mut wide = plain.clone();
+        for frame in 0..6 {
+            let pixels = random_pixels(&mut noise, 64 * 48);
+            let angle = 0.1 * f64::from(noise.next() - 0.5);
+            let pose: Pose = Isometry3::from_parts(
+                Translation3::new(
+                    0.05 * f64::from(noise.next()),
+                    0.05 * f64::from(noise.next()),
+                    0.0,
+                ),
+                UnitQuaternion::from_axis_angle(&Vector3::y_axis(), angle),
+            );
+            let params = FuseParams {
+                camera: Camera32::new(&k),
+                pose: RigidF32::from_pose(&pose),
+                pixels: &pixels,
+                voxel_size: 0.02,
+                trunc: 0.08,
+                max_weight: if frame < 3 { 65535 } else { 4 },
+            };
+            for (a, b) in plain.iter_mut().zip(&mut wide) {
+                update_block(a, &params);
+                wide::update_block(b, &params);
+            }
+        }
+        let mut observed = 0;
+        for (a, b) in plain.iter().zip(&wide) {
+            let bits = |block: &Block| block.tsdf.map(f32::to_bits);
+            assert_eq!(bits(a), bits(b), "tsdf of block {:?}", a.coord);
+            assert_eq!(a.weight, b.weight, "weights of block {:?}", a.coord);
+            assert_eq!(a.rgb, b.rgb, "colours of block {:?}", a.coord);
+            assert_eq!(a.march, b.march, "march of block {:?}", a.coord);
+            assert_eq!(a.near_surface, b.near_surface, "block {:?}", a.coord);
+            observed += a.weight.iter().filter(|&&w| w > 0).count();
+        }
+        // Most voxels in view were observed, and some blocks lie outside the view.
+        let voxels = plain.len() * BLOCK_VOXELS;
+        assert!(
+            observed > voxels / 10 && observed < voxels,
+            "{observed} of {voxels}"
+        );
+        assert!(plain.iter().any(|b| b.weight.contains(&4)));
+        assert!(plain.iter().any(|b| b.near_surface));
+    }
 }
