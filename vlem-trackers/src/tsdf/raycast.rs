@@ -984,6 +984,11 @@ impl TsdfVolume {
     }
 }
 
+/// Rays of one image row marched side by side. A march is a chain of dependent loads (each
+/// sample's TSDF sets where the next one is), so one ray at a time leaves the core waiting on
+/// memory; with several rays in flight their loads overlap. Each ray's arithmetic is unchanged.
+const RAYS_IN_FLIGHT: usize = 4;
+
 /// Casts the rays of image row `v`, starting no earlier than `starts` where given.
 #[allow(
     clippy::too_many_arguments,
@@ -999,36 +1004,56 @@ fn cast_row(
     rgb: &mut [u8],
     mut normals: Option<&mut [[f32; 3]]>,
 ) {
-    for (u, d) in depth.iter_mut().enumerate() {
-        let start = starts
-            .and_then(|s| s.get(u))
-            .copied()
-            .unwrap_or(f32::NEG_INFINITY);
-        let Some(mut m) = March::new(ctx, ranges, u, v, start) else {
-            continue;
-        };
-        let Some((a, b)) = (loop {
-            match m.step(ctx, lookup) {
-                Step::Going => {}
-                Step::Miss => break None,
-                Step::Surface(a, b) => break Some((a, b)),
+    let width = depth.len();
+    // The next pixel to start a march for.
+    let mut next = 0;
+    let mut start_march = || {
+        while next < width {
+            let u = next;
+            next += 1;
+            let start = starts
+                .and_then(|s| s.get(u))
+                .copied()
+                .unwrap_or(f32::NEG_INFINITY);
+            if let Some(m) = March::new(ctx, ranges, u, v, start) {
+                return Some((u, m));
             }
-        }) else {
-            continue;
-        };
-        let ray = Ray {
-            ctx,
-            lookup,
-            dir: m.dir,
-            voxel_step: m.voxel_step,
-        };
-        let hit = ray.refine(&mut m.cache, a, b);
-        *d = hit.depth;
-        if let Some(c) = rgb.get_mut(u * 3..u * 3 + 3) {
-            c.copy_from_slice(&hit.rgb);
         }
-        if let Some(n) = normals.as_deref_mut().and_then(|n| n.get_mut(u)) {
-            *n = hit.normal;
+        None
+    };
+    let mut flight: [Option<(usize, March<'_>)>; RAYS_IN_FLIGHT] =
+        std::array::from_fn(|_| start_march());
+    while flight.iter().any(Option::is_some) {
+        for slot in &mut flight {
+            let Some((u, m)) = slot else {
+                continue;
+            };
+            let (a, b) = match m.step(ctx, lookup) {
+                Step::Going => continue,
+                Step::Miss => {
+                    *slot = start_march();
+                    continue;
+                }
+                Step::Surface(a, b) => (a, b),
+            };
+            let u = *u;
+            let ray = Ray {
+                ctx,
+                lookup,
+                dir: m.dir,
+                voxel_step: m.voxel_step,
+            };
+            let hit = ray.refine(&mut m.cache, a, b);
+            if let Some(d) = depth.get_mut(u) {
+                *d = hit.depth;
+            }
+            if let Some(c) = rgb.get_mut(u * 3..u * 3 + 3) {
+                c.copy_from_slice(&hit.rgb);
+            }
+            if let Some(n) = normals.as_deref_mut().and_then(|n| n.get_mut(u)) {
+                *n = hit.normal;
+            }
+            *slot = start_march();
         }
     }
 }
