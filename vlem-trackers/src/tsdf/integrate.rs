@@ -377,6 +377,9 @@ mod wide {
         };
         use super::super::{BlockFrame, FuseParams, NEAR_SURFACE, Pixel};
 
+        // The gathers step by 8 bytes per pixel and read the depth at the pixel's start.
+        const _: () = assert!(size_of::<Pixel>() == 8 && offset_of!(Pixel, depth) == 0);
+
         /// Whether every pixel index of the frame fits the gathers' 32-bit lane offsets and the
         /// pixel table holds the whole image (it always does; checked so that a lane inside the
         /// image cannot read past the table).
