@@ -21,6 +21,8 @@ REF="$SEQ/trajectory_open3d_estimate.log"
 REPEATS="${REPEATS:-3}"
 OUT=out/bench
 mkdir -p "$OUT"
+# The table reads every round's files: none may be left over from an earlier run.
+rm -f "$OUT"/open3d-tracking-round*.json "$OUT"/vlem-*/stats-round*.json
 
 cargo build --release --quiet
 have_open3d=false
