@@ -20,6 +20,8 @@
 //! best distance so far (or `max_distance`) are skipped, so a map point on the observed surface
 //! costs one or two rings.
 
+mod wide;
+
 use kiddo::{ImmutableKdTree, SquaredEuclidean};
 use rayon::prelude::*;
 use vlem_core::{Intrinsics, RigidF32};
@@ -96,50 +98,86 @@ impl FrameView<'_> {
             }
             Association::Projective => {
                 let grid = PixelGrid::new(self, grid);
-                self.for_each_in_view(map, out, |_, projection| {
-                    grid.nearest(projection, r2, window)
-                });
+                let projector = Projector::new(self);
+                out.resize(map.len(), NONE);
+                map.par_chunks(SEARCH_CHUNK)
+                    .zip(out.par_chunks_mut(SEARCH_CHUNK))
+                    .for_each(|(points, found)| {
+                        wide::nearest_points(&projector, &grid, points, found, r2, window);
+                    });
             }
         }
     }
 
-    /// Maps `find(world point, its projection)` over the map points in the view, [`NONE`] for
-    /// the others. In view: in front of the camera and projecting within half a pixel of the
-    /// image (points back-projected from the border pixels are in view).
+    /// Maps `find(world point, its projection)` over the map points in the view
+    /// ([`Projector::project`]), [`NONE`] for the others.
     fn for_each_in_view(
         &self,
         map: &[[f32; 3]],
         out: &mut Vec<u32>,
         find: impl Fn([f32; 3], Projection) -> u32 + Sync,
     ) {
-        let k = self.intrinsics;
-        let (fx, fy, cx, cy) = (k.fx as f32, k.fy as f32, k.cx as f32, k.cy as f32);
-        let (w, h) = (k.width as f32, k.height as f32);
+        let projector = Projector::new(self);
         map.par_iter()
-            .with_min_len(4096)
-            .map(|&q| {
-                let c = self.to_camera.apply(q);
-                if c[2] <= 0.0 {
-                    return NONE;
-                }
-                let inverse_depth = 1.0 / c[2];
-                let (x, y) = (c[0] * inverse_depth, c[1] * inverse_depth);
-                let (u, v) = (fx * x + cx, fy * y + cy);
-                if !(u >= -0.5 && v >= -0.5 && u < w - 0.5 && v < h - 0.5) {
-                    return NONE;
-                }
-                find(
-                    q,
-                    Projection {
-                        u,
-                        v,
-                        x,
-                        y,
-                        camera: c,
-                    },
-                )
-            })
+            .with_min_len(SEARCH_CHUNK)
+            .map(|&q| projector.project(q).map_or(NONE, |p| find(q, p)))
             .collect_into_vec(out);
+    }
+}
+
+/// Map points per parallel task of the search: a few thousand, so two cores share a frame's
+/// 1M points evenly at a negligible cost per task.
+const SEARCH_CHUNK: usize = 4096;
+
+/// Projects map points into a frame: its pose and camera, in `f32`.
+struct Projector {
+    /// World to camera.
+    to_camera: RigidF32,
+    fx: f32,
+    fy: f32,
+    cx: f32,
+    cy: f32,
+    /// The image's size less half a pixel: a projection in view is below it.
+    u_end: f32,
+    v_end: f32,
+}
+
+impl Projector {
+    fn new(view: &FrameView<'_>) -> Self {
+        let k = view.intrinsics;
+        Self {
+            to_camera: view.to_camera,
+            fx: k.fx as f32,
+            fy: k.fy as f32,
+            cx: k.cx as f32,
+            cy: k.cy as f32,
+            u_end: k.width as f32 - 0.5,
+            v_end: k.height as f32 - 0.5,
+        }
+    }
+
+    /// Where world point `q` lands in the frame; `None` out of view. In view: in front of the
+    /// camera and projecting within half a pixel of the image (points back-projected from the
+    /// border pixels are in view).
+    #[inline]
+    fn project(&self, q: [f32; 3]) -> Option<Projection> {
+        let c = self.to_camera.apply(q);
+        if c[2] <= 0.0 {
+            return None;
+        }
+        let inverse_depth = 1.0 / c[2];
+        let (x, y) = (c[0] * inverse_depth, c[1] * inverse_depth);
+        let (u, v) = (self.fx * x + self.cx, self.fy * y + self.cy);
+        if !(u >= -0.5 && v >= -0.5 && u < self.u_end && v < self.v_end) {
+            return None;
+        }
+        Some(Projection {
+            u,
+            v,
+            x,
+            y,
+            camera: c,
+        })
     }
 }
 
@@ -161,6 +199,7 @@ struct Projection {
 /// bytes rather than the world point's sixteen: a profile puts most of the search's time on the
 /// loads of cells, and half the bytes are half the cache lines.
 #[derive(Clone, Copy, Debug)]
+#[repr(C)] // `wide` gathers the depth at a cell's start and the index 4 bytes on.
 pub(super) struct Cell {
     /// NaN for a pixel without a point.
     depth: f32,
@@ -267,38 +306,66 @@ impl<'g> PixelGrid<'g> {
     /// with branches and take 30 ms this way.
     #[inline]
     fn nearest(&self, p: Projection, r2: f32, window: u32) -> u32 {
-        let (columns, rows) = (self.columns as i64, self.rows as i64);
-        // The nearest cell; `+ 0.5` then truncation rounds the non-negative values exactly like
-        // `round` (a projection in view is at least -0.5 pixels), without a libm call.
-        let gu = ((p.u * self.inverse_stride + 0.5) as i64).clamp(0, columns - 1);
-        let gv = ((p.v * self.inverse_stride + 0.5) as i64).clamp(0, rows - 1);
+        let (gu, gv) = self.cell_of(&p);
         let mut nearest = Candidate::new(r2, NONE);
-        let visit = |cu: i64, cv: i64, nearest: &mut Candidate| {
-            // The loops below keep (cu, cv) inside the grid.
-            let (cu, cv) = (cu as usize, cv as usize);
-            let cell = self.cells[cv * self.columns + cu];
-            let d2 = self.distance2(cell.depth, cu, cv, p.camera);
-            *nearest = (*nearest).min(Candidate::new(d2, cell.index));
-        };
         if window == 0 {
-            visit(gu, gv, &mut nearest);
+            self.visit(gu, gv, p.camera, &mut nearest);
             return nearest.index();
         }
         // Rings 0 and 1 are searched for nearly every point (ring 1's bound is half a pixel's
         // footprint, below any depth noise), so away from the border they are one pass over the
         // 3x3 block.
-        let first_ring = if (1..columns - 1).contains(&gu) && (1..rows - 1).contains(&gv) {
+        let first_ring = if self.is_interior(gu, gv) {
             self.block3(gu as usize, gv as usize, p.camera, &mut nearest);
             2
         } else {
-            visit(gu, gv, &mut nearest);
+            self.visit(gu, gv, p.camera, &mut nearest);
             1
         };
-        // |b| over the window: the largest ray (x, y, 1) of a cell in it.
-        let reach = window as f32 * self.stride;
-        let bx = p.x.abs() + reach * self.inverse_fx;
-        let by = p.y.abs() + reach * self.inverse_fy;
-        let per_ring = p.camera[2] * self.stride / (self.focal * (1.0 + bx * bx + by * by).sqrt());
+        self.outer_rings(&p, (gu, gv), first_ring, window, nearest)
+            .index()
+    }
+
+    /// The cell nearest to the projection `p`, clamped to the grid.
+    #[inline]
+    fn cell_of(&self, p: &Projection) -> (i64, i64) {
+        // `+ 0.5` then truncation rounds the non-negative values exactly like `round` (a
+        // projection in view is at least -0.5 pixels), without a libm call.
+        let gu = (p.u * self.inverse_stride + 0.5) as i64;
+        let gv = (p.v * self.inverse_stride + 0.5) as i64;
+        (
+            gu.clamp(0, self.columns as i64 - 1),
+            gv.clamp(0, self.rows as i64 - 1),
+        )
+    }
+
+    /// Whether the 3x3 block around cell `(gu, gv)` lies inside the grid.
+    #[inline]
+    fn is_interior(&self, gu: i64, gv: i64) -> bool {
+        (1..self.columns as i64 - 1).contains(&gu) && (1..self.rows as i64 - 1).contains(&gv)
+    }
+
+    /// Takes the point of cell `(cu, cv)`, inside the grid, if nearer than `nearest`.
+    #[inline]
+    fn visit(&self, cu: i64, cv: i64, c: [f32; 3], nearest: &mut Candidate) {
+        let (cu, cv) = (cu as usize, cv as usize);
+        let cell = self.cells[cv * self.columns + cu];
+        let d2 = self.distance2(cell.depth, cu, cv, c);
+        *nearest = (*nearest).min(Candidate::new(d2, cell.index));
+    }
+
+    /// Searches rings `first_ring..=window` around cell `(gu, gv)` for a point nearer than
+    /// `nearest`, from the nearest ring out, until a ring's bound rules out the rest.
+    fn outer_rings(
+        &self,
+        p: &Projection,
+        (gu, gv): (i64, i64),
+        first_ring: i64,
+        window: u32,
+        mut nearest: Candidate,
+    ) -> Candidate {
+        let (columns, rows) = (self.columns as i64, self.rows as i64);
+        let per_ring = self.per_ring(p, window);
         for k in first_ring..=i64::from(window) {
             let bound = (k as f32 - 0.5) * per_ring;
             if bound * bound > nearest.distance2() {
@@ -309,19 +376,30 @@ impl<'g> PixelGrid<'g> {
             for cv in [gv - k, gv + k] {
                 if (0..rows).contains(&cv) {
                     for cu in u0..=u1 {
-                        visit(cu, cv, &mut nearest);
+                        self.visit(cu, cv, p.camera, &mut nearest);
                     }
                 }
             }
             for cu in [gu - k, gu + k] {
                 if (0..columns).contains(&cu) {
                     for cv in (gv - k + 1).max(v0)..=(gv + k - 1).min(v1) {
-                        visit(cu, cv, &mut nearest);
+                        self.visit(cu, cv, p.camera, &mut nearest);
                     }
                 }
             }
         }
-        nearest.index()
+        nearest
+    }
+
+    /// How much the distance bound grows per ring of the window around projection `p`:
+    /// `z_q s / (f |b|)` of the module docs, with `|b|` the largest ray `(x, y, 1)` of a cell
+    /// within `window`.
+    #[inline]
+    fn per_ring(&self, p: &Projection, window: u32) -> f32 {
+        let reach = window as f32 * self.stride;
+        let bx = p.x.abs() + reach * self.inverse_fx;
+        let by = p.y.abs() + reach * self.inverse_fy;
+        p.camera[2] * self.stride / (self.focal * (1.0 + bx * bx + by * by).sqrt())
     }
 
     /// Rings 0 and 1 around the interior cell `(gu, gv)`: the nearest of the nine cells' points
