@@ -4,13 +4,14 @@
 //! from f16's limits, so the ranking of points for a query is kept (tested below). Arithmetic always
 //! happens in `f32`: rows are widened into a scratch buffer, updated and narrowed back.
 
+mod wide;
+
 use half::f16;
 // Slice conversions use the CPU's F16C instructions where present (detected at run time);
 // element-wise `to_f32` would be a software conversion several times slower.
 use half::slice::HalfFloatSliceExt;
 use rayon::prelude::*;
 use serde::Deserialize;
-use vlem_core::embeddings::normalise;
 use vlem_core::query::dot;
 use vlem_core::{CoreError, Result};
 
@@ -289,12 +290,7 @@ impl EmbeddingStore {
 
 /// `e_M := (1 - w) e_P + w e_M`, renormalised; falls back to `e_P` when the two cancel out.
 pub fn fuse_into(map: &mut [f32], observed: &[f32], map_weight: f32) {
-    for (m, p) in map.iter_mut().zip(observed) {
-        *m = (1.0 - map_weight) * p + map_weight * *m;
-    }
-    if !normalise(map) {
-        map.copy_from_slice(observed);
-    }
+    wide::fuse_into(map, observed, map_weight);
 }
 
 #[cfg(test)]
@@ -306,7 +302,7 @@ mod tests {
         let mut rng = rand::rngs::StdRng::seed_from_u64(seed);
         let mut v: Vec<f32> = (0..n * dim).map(|_| rng.random_range(-1.0..1.0)).collect();
         v.chunks_exact_mut(dim).for_each(|r| {
-            normalise(r);
+            vlem_core::embeddings::normalise(r);
         });
         v
     }
