@@ -5,8 +5,9 @@
 //! on the surfaces the frame sees (points of frame 0 in its pixel order, jittered by up to 3 mm), with
 //! each association, without and with downsampling to the budget; beside each case, the memory
 //! floor of its fusion, measured right after each run: reading and writing back the fused rows,
-//! and writing the inserted rows into fresh memory. Then it times one text query over 1M x 512
-//! embeddings. It prints a table of medians (the floor ratio is the median of each run's ratio
+//! and writing the inserted rows into fresh memory. Then it times the fusion pass alone over
+//! 1M x 512 rows in memory, beside its floor (`VLEM_BENCH_NO_PASS=1` skips it), and one text
+//! query over 1M x 512 embeddings. It prints a table of medians (the floor ratio is the median of each run's ratio
 //! to its own floor); BENCHMARKS.md records the numbers.
 //!
 //! One case at a time, e.g. for a profile: `VLEM_BENCH_DIMS=11 VLEM_BENCH_POINTS=1000000
@@ -29,7 +30,9 @@ use rand::rngs::StdRng;
 use rand::{Rng, SeedableRng};
 use rayon::prelude::*;
 use vlem_core::config::DatasetConfig;
-use vlem_core::{EmbeddingMap, MapMetadata, MapSnapshot, Observation, PixelEmbeddings};
+use vlem_core::{
+    EmbeddingMap, IntegrationStats, MapMetadata, MapSnapshot, Observation, PixelEmbeddings,
+};
 use vlem_maps::point_cloud::{Association, NAME, PointCloudConfig};
 use vlem_maps::storage::Precision;
 
@@ -82,31 +85,46 @@ fn main() {
                         precision,
                         ..PointCloudConfig::default()
                     };
-                    let mut times = Vec::new();
-                    let mut floors = Vec::new();
-                    let mut stats = None;
+                    let observation = Observation {
+                        frame: &frame1,
+                        pose: frame1.pose.as_ref().unwrap(),
+                        embeddings: Some(&embeddings),
+                    };
+                    let (mut first, mut again) = (Vec::new(), Vec::new());
+                    let (mut stats, mut again_stats) = (None, None);
                     let mut query_ms = 0.0;
-                    for run in 0..RUNS {
-                        let mut map = config.build(Some(dim)).unwrap();
+                    // One map for the case, kept across its runs as a running pipeline keeps
+                    // its map: a first, untimed frame sizes its per-frame buffers (the frame's
+                    // points, the correspondences, the pixel grid), so that a timed frame costs
+                    // what it costs a map that has been integrating rather than the first
+                    // frame's allocations. Each run restores the same points into it.
+                    let mut map = config.build(Some(dim)).unwrap();
+                    let empty = MapSnapshot {
+                        map_kind: NAME.into(),
+                        dim,
+                        positions: Vec::new(),
+                        colours: Vec::new(),
+                        embeddings: Vec::new(),
+                        metadata: MapMetadata::default(),
+                    };
+                    for run in 0..=RUNS {
+                        // The last run's table goes before the next copy is made, so that a
+                        // 4M-point map at 512 dimensions and its copy need not fit at once.
+                        map.restore(empty.clone()).unwrap();
                         map.restore(snapshot.clone()).unwrap();
                         // A map being built grows its tables by doubling, so a frame rarely
                         // reallocates them; a restored one holds exactly its points.
                         map.reserve(frame1.depth.valid_count());
-                        let t = Instant::now();
-                        let s = map
-                            .integrate(&Observation {
-                                frame: &frame1,
-                                pose: frame1.pose.as_ref().unwrap(),
-                                embeddings: Some(&embeddings),
-                            })
-                            .unwrap();
-                        times.push(t.elapsed().as_secs_f64() * 1e3);
+                        let (ms, s) = timed_integrate(&mut map, &observation);
+                        if run == 0 {
+                            continue;
+                        }
                         // This run's floor, measured right after it: on this VM the speed of
                         // memory, and above all what a fresh page costs, drift from one run to
                         // the next, so each run is set against its own floor. The new rows'
                         // part first, while memory is as the frame left it.
                         let new_rows = fresh_write_ms(s.inserted * dim);
-                        if run == RUNS - 1 {
+                        if run == RUNS {
                             // One text query over the integrated map, as a user asks it.
                             let text = random_unit_rows(&mut rng, 1, dim);
                             let mut scores = Vec::new();
@@ -114,50 +132,101 @@ fn main() {
                             map.similarity(&text, &mut scores).unwrap();
                             query_ms = t.elapsed().as_secs_f64() * 1e3;
                         }
-                        // The fused rows' part once the map is gone, so that a 4M-point map at
-                        // 512 dimensions and this pass's buffer need not fit in memory at once.
-                        drop(map);
-                        floors.push(Floor {
-                            fused_rows: read_write_pass_ms(s.fused * dim),
-                            new_rows,
+                        // Without downsampling, the same frame once more: the map now holds
+                        // its points, so it fuses nearly all of them and grows by next to
+                        // nothing, as a map does that sees a room it has mapped. No fresh
+                        // pages, so this row is the fusion against the speed of memory alone.
+                        let seen_again = (budget_factor > 1).then(|| {
+                            let (ms, s) = timed_integrate(&mut map, &observation);
+                            (ms, fresh_write_ms(s.inserted * dim), s)
                         });
+                        // The fused rows' part once the map's table is gone, so that a 4M-point
+                        // map at 512 dimensions and this pass's buffer need not fit at once.
+                        map.restore(empty.clone()).unwrap();
+                        first.push(Timed {
+                            ms,
+                            floor: Floor {
+                                fused_rows: read_write_pass_ms(s.fused * dim),
+                                new_rows,
+                            },
+                        });
+                        if let Some((ms, new_rows, s)) = seen_again {
+                            again.push(Timed {
+                                ms,
+                                floor: Floor {
+                                    fused_rows: read_write_pass_ms(s.fused * dim),
+                                    new_rows,
+                                },
+                            });
+                            again_stats = Some(s);
+                        }
                         stats = Some(s);
                     }
-                    let s = stats.unwrap();
-                    let median = |mut v: Vec<f64>| {
-                        v.sort_by(f64::total_cmp);
-                        v[RUNS / 2]
-                    };
-                    let ratio = median(
-                        times
-                            .iter()
-                            .zip(&floors)
-                            .map(|(t, f)| t / (f.fused_rows + f.new_rows))
-                            .collect(),
-                    );
-                    let fused_ratio = median(
-                        times
-                            .iter()
-                            .zip(&floors)
-                            .map(|(t, f)| t / f.fused_rows)
-                            .collect(),
-                    );
-                    let floor_fused = median(floors.iter().map(|f| f.fused_rows).collect());
-                    let floor_new = median(floors.iter().map(|f| f.new_rows).collect());
-                    let min = times.iter().copied().fold(f64::INFINITY, f64::min);
-                    println!(
-                        "| {dim} | {n} | {association:?} | {label} | {:.1} | {min:.1} | {} | {} | {} | {floor_fused:.1} + {floor_new:.1} | {ratio:.2} | {fused_ratio:.2} | {query_ms:.1} |",
-                        median(times),
-                        s.fused,
-                        s.inserted,
-                        s.removed,
-                    );
+                    let case = format!("| {dim} | {n} | {association:?}");
+                    print_row(&case, label, &first, &stats.unwrap(), query_ms);
+                    if let Some(s) = again_stats {
+                        print_row(&case, "the same frame again", &again, &s, query_ms);
+                    }
                 }
             }
         }
     }
+    if std::env::var_os("VLEM_BENCH_NO_PASS").is_none() {
+        fusion_pass_benchmark(&mut rng);
+    }
     if std::env::var_os("VLEM_BENCH_NO_QUERY").is_none() {
         query_benchmark(&mut rng);
+    }
+}
+
+/// The fusion pass alone, over 1M x 512 rows already in memory, beside the floor pass over the
+/// same rows and the fusion as it was built before (blend, then `normalise`): whether the row
+/// fusion runs at the speed of memory, without the frame's fresh pages and the rest of
+/// `integrate` around it. Each round times the three in turn, so drift hits all three alike.
+fn fusion_pass_benchmark(rng: &mut StdRng) {
+    const ROUNDS: usize = 7;
+    let (n, dim, map_weight) = (1_000_000, DIM, 0.5);
+    let mut rows = random_unit_rows(rng, n, dim);
+    let segments = random_unit_rows(rng, 300, dim);
+    // Each row fuses with the segment its 32x32 block of a 640x480 frame would see.
+    let segment_of = |i: usize| (i / 3000) % 300;
+    let mut pass = |fuse: fn(&mut [f32], &[f32], f32)| {
+        let t = Instant::now();
+        rows.par_chunks_exact_mut(dim)
+            .enumerate()
+            .with_min_len(256)
+            .for_each(|(i, row)| fuse(row, &segments[segment_of(i) * dim..][..dim], map_weight));
+        t.elapsed().as_secs_f64() * 1e3
+    };
+    let (mut floor, mut before, mut now) = (Vec::new(), Vec::new(), Vec::new());
+    for _ in 0..ROUNDS {
+        floor.push(pass(|row, _, _| row.iter_mut().for_each(|x| *x *= 0.999_9)));
+        before.push(pass(blend_then_normalise));
+        now.push(pass(vlem_maps::storage::fuse_into));
+    }
+    let median = |v: &[f64]| {
+        let mut v = v.to_vec();
+        v.sort_by(f64::total_cmp);
+        v[v.len() / 2]
+    };
+    let ratio = |v: &[f64]| median(&v.iter().zip(&floor).map(|(t, f)| t / f).collect::<Vec<_>>());
+    println!(
+        "fusion pass over {n} x {dim} rows in memory (median of {ROUNDS} rounds): floor {:.1} ms; blend then normalise (before) {:.1} ms, {:.2}x the floor; `fuse_into` {:.1} ms, {:.2}x",
+        median(&floor),
+        median(&before),
+        ratio(&before),
+        median(&now),
+        ratio(&now)
+    );
+}
+
+/// The row fusion as the library built it before `fuse_into`'s one-pass AVX2 build.
+fn blend_then_normalise(map: &mut [f32], observed: &[f32], map_weight: f32) {
+    for (m, p) in map.iter_mut().zip(observed) {
+        *m = (1.0 - map_weight) * p + map_weight * *m;
+    }
+    if !vlem_core::embeddings::normalise(map) {
+        map.copy_from_slice(observed);
     }
 }
 
@@ -167,6 +236,48 @@ fn env_list(name: &str, default: &[usize]) -> Vec<usize> {
         |_| default.to_vec(),
         |v| v.split(',').map(|x| x.trim().parse().unwrap()).collect(),
     )
+}
+
+/// Integrates `observation` into `map`: the time in ms and the map's report.
+fn timed_integrate(
+    map: &mut impl EmbeddingMap,
+    observation: &Observation<'_>,
+) -> (f64, IntegrationStats) {
+    let t = Instant::now();
+    let stats = map.integrate(observation).unwrap();
+    (t.elapsed().as_secs_f64() * 1e3, stats)
+}
+
+/// One timed frame and the floor measured right after it.
+struct Timed {
+    ms: f64,
+    floor: Floor,
+}
+
+/// Prints the table row of the `runs` of one case (`case`: its first three columns).
+fn print_row(case: &str, label: &str, runs: &[Timed], stats: &IntegrationStats, query_ms: f64) {
+    let median = |mut v: Vec<f64>| {
+        v.sort_by(f64::total_cmp);
+        v[v.len() / 2]
+    };
+    let times = || runs.iter().map(|r| r.ms);
+    let min = times().fold(f64::INFINITY, f64::min);
+    let floor_fused = median(runs.iter().map(|r| r.floor.fused_rows).collect());
+    let floor_new = median(runs.iter().map(|r| r.floor.new_rows).collect());
+    // Each run against its own floor.
+    let ratio = median(
+        runs.iter()
+            .map(|r| r.ms / (r.floor.fused_rows + r.floor.new_rows))
+            .collect(),
+    );
+    let fused_ratio = median(runs.iter().map(|r| r.ms / r.floor.fused_rows).collect());
+    println!(
+        "{case} | {label} | {:.1} | {min:.1} | {} | {} | {} | {floor_fused:.1} + {floor_new:.1} | {ratio:.2} | {fused_ratio:.2} | {query_ms:.1} |",
+        median(times().collect()),
+        stats.fused,
+        stats.inserted,
+        stats.removed,
+    );
 }
 
 /// One run's memory floor, in ms: the least any fusion of its rows can cost on this machine.

@@ -5,7 +5,7 @@
 //! points answers exactly but at about 0.3 µs a query, so one frame against a 1M-point map costs
 //! about 300 ms on two cores. Dense fusion systems instead *project* each map point into the new
 //! frame and look only at the new points back-projected from the pixels around it ("projective
-//! association"): O(1) per point with an image-sized index, about 25 ms a frame against 1M
+//! association"): O(1) per point with an image-sized index, about 10 ms a frame against 1M
 //! points on two cores. It finds the same neighbour whenever that neighbour lies within the
 //! pixel window, which on a surface seen from nearby it does (`BENCHMARKS.md`: 99.5 % of the
 //! correspondences on the shared sequence); the k-d tree stays as `association = "kd-tree"`.
