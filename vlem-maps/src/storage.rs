@@ -289,6 +289,7 @@ impl EmbeddingStore {
 }
 
 /// `e_M := (1 - w) e_P + w e_M`, renormalised; falls back to `e_P` when the two cancel out.
+#[inline]
 pub fn fuse_into(map: &mut [f32], observed: &[f32], map_weight: f32) {
     wide::fuse_into(map, observed, map_weight);
 }

