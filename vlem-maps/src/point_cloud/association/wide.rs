@@ -2,9 +2,10 @@
 //!
 //! Why: the search is a third of a 512-d frame's time above the memory floor, and nearly all of it
 //! is the same straight-line work per point: transform and project the point, then take the
-//! nearest of the nine cells around its projection. Eight lanes do that for eight points with one
-//! gather per cell, and the rare points that need more (near the border of the image, or without
-//! a close point in the 3x3 block so that the outer rings are searched) finish in the plain code.
+//! nearest of the nine cells around its projection. Eight lanes do that for eight points with two
+//! gathers per cell (its depth and its point's index), and the rare points that need more (near
+//! the border of the image, or without a close point in the 3x3 block so that the outer rings
+//! are searched) finish in the plain code.
 //!
 //! It is the plain search's IEEE arithmetic in the same order (no fused multiply-add is enabled),
 //! and it takes the same candidate: the lower squared distance, then the lower index, which is
