@@ -463,9 +463,36 @@ mod tests {
         found
     }
 
+    /// A rough surface seen by `intrinsics` from the camera pose `from_camera`: the world points
+    /// of the pixels on the `stride` grid, a tenth of them left without depth, and their pixels.
+    pub(super) fn rough_surface(
+        rng: &mut impl Rng,
+        intrinsics: &Intrinsics,
+        stride: u32,
+        from_camera: &RigidF32,
+    ) -> (Vec<[f32; 3]>, Vec<u32>) {
+        let k = intrinsics;
+        let (fx, fy, cx, cy) = (k.fx as f32, k.fy as f32, k.cx as f32, k.cy as f32);
+        let (mut positions, mut pixels) = (Vec::new(), Vec::new());
+        for v in (0..k.height).step_by(stride as usize) {
+            for u in (0..k.width).step_by(stride as usize) {
+                if rng.random_bool(0.1) {
+                    continue;
+                }
+                let z = 1.0 + 0.3 * (u as f32 * 0.2).sin() + rng.random_range(0.0..0.05);
+                let x = (u as f32 - cx) * z / fx;
+                let y = (v as f32 - cy) * z / fy;
+                positions.push(from_camera.apply([x, y, z]));
+                pixels.push(v * k.width + u);
+            }
+        }
+        (positions, pixels)
+    }
+
     #[test]
     fn the_pruned_window_search_finds_the_nearest_point_in_the_window() {
         let mut rng = rand::rngs::StdRng::seed_from_u64(11);
+        let identity = RigidF32::from_pose(&vlem_core::Pose::identity());
         for stride in [1u32, 2, 3] {
             let intrinsics = Intrinsics {
                 width: 64,
@@ -475,23 +502,10 @@ mod tests {
                 cx: 31.5,
                 cy: 23.5,
             };
-            // A rough surface seen from the identity pose, some pixels without depth.
-            let (mut positions, mut pixels) = (Vec::new(), Vec::new());
-            for v in (0..intrinsics.height).step_by(stride as usize) {
-                for u in (0..intrinsics.width).step_by(stride as usize) {
-                    if rng.random_bool(0.1) {
-                        continue;
-                    }
-                    let z = 1.0 + 0.3 * (u as f32 * 0.2).sin() + rng.random_range(0.0..0.05);
-                    let x = (u as f32 - 31.5) * z / 52.5;
-                    let y = (v as f32 - 23.5) * z / 52.0;
-                    positions.push([x, y, z]);
-                    pixels.push(v * intrinsics.width + u);
-                }
-            }
+            let (positions, pixels) = rough_surface(&mut rng, &intrinsics, stride, &identity);
             let view = FrameView {
                 intrinsics: &intrinsics,
-                to_camera: RigidF32::from_pose(&vlem_core::Pose::identity()),
+                to_camera: identity,
                 positions: &positions,
                 pixels: &pixels,
                 stride,

@@ -393,6 +393,7 @@ mod tests {
     use rand::{Rng, SeedableRng};
     use vlem_core::{Intrinsics, Pose, RigidF32};
 
+    use super::super::tests::rough_surface;
     use super::super::{FrameView, PixelGrid, Projector};
     use super::*;
 
@@ -419,19 +420,7 @@ mod tests {
         let from_camera = RigidF32::from_pose(&pose);
         let mut searched_outer_rings = false;
         for stride in [1u32, 2, 3] {
-            let (mut positions, mut pixels) = (Vec::new(), Vec::new());
-            for v in (0..intrinsics.height).step_by(stride as usize) {
-                for u in (0..intrinsics.width).step_by(stride as usize) {
-                    if rng.random_bool(0.1) {
-                        continue;
-                    }
-                    let z = 1.2 + 0.4 * (u as f32 * 0.15).sin() + rng.random_range(0.0..0.04);
-                    let x = (u as f32 - 39.5) * z / 70.5;
-                    let y = (v as f32 - 29.5) * z / 69.0;
-                    positions.push(from_camera.apply([x, y, z]));
-                    pixels.push(v * intrinsics.width + u);
-                }
-            }
+            let (positions, pixels) = rough_surface(&mut rng, &intrinsics, stride, &from_camera);
             let view = FrameView {
                 intrinsics: &intrinsics,
                 to_camera,
