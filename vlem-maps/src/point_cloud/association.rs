@@ -99,12 +99,16 @@ impl FrameView<'_> {
             Association::Projective => {
                 let grid = PixelGrid::new(self, grid);
                 let projector = Projector::new(self);
+                let search = ProjectiveSearch {
+                    projector: &projector,
+                    grid: &grid,
+                    r2,
+                    window,
+                };
                 out.resize(map.len(), NONE);
                 map.par_chunks(SEARCH_CHUNK)
                     .zip(out.par_chunks_mut(SEARCH_CHUNK))
-                    .for_each(|(points, found)| {
-                        wide::nearest_points(&projector, &grid, points, found, r2, window);
-                    });
+                    .for_each(|(points, found)| wide::nearest_points(&search, points, found));
             }
         }
     }
@@ -128,6 +132,25 @@ impl FrameView<'_> {
 /// Map points per parallel task of the search: a few thousand, so two cores share a frame's
 /// 1M points evenly at a negligible cost per task.
 const SEARCH_CHUNK: usize = 4096;
+
+/// One frame's projective search: where map points land in it, the grid of its new points, and
+/// the squared radius and the window of the search.
+struct ProjectiveSearch<'a, 'g> {
+    projector: &'a Projector,
+    grid: &'a PixelGrid<'g>,
+    r2: f32,
+    window: u32,
+}
+
+impl ProjectiveSearch<'_, '_> {
+    /// The nearest new point to world point `q`, [`NONE`] for none and out of view.
+    #[inline]
+    fn nearest(&self, q: [f32; 3]) -> u32 {
+        self.projector
+            .project(q)
+            .map_or(NONE, |p| self.grid.nearest(p, self.r2, self.window))
+    }
+}
 
 /// Projects map points into a frame: its pose and camera, in `f32`.
 struct Projector {

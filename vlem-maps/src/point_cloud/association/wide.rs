@@ -12,47 +12,35 @@
 //! the order of the plain search's [`Candidate`](super::Candidate) keys. A unit test checks that
 //! the two find the same points.
 
-use super::{NONE, PixelGrid, Projector};
+use super::ProjectiveSearch;
 
-/// Writes into `found` the nearest new point within `sqrt(r2)` of each of `points` by the
-/// projective search ([`NONE`] for none and out of view): eight at a time where the CPU has AVX2
-/// and the grid suits the lanes, one at a time elsewhere.
+/// Writes into `found` the correspondence of each of `points` by `search` ([`super::NONE`] for
+/// none and out of view): eight at a time where the CPU has AVX2 and the grid suits the lanes,
+/// one at a time elsewhere.
 pub(super) fn nearest_points(
-    projector: &Projector,
-    grid: &PixelGrid<'_>,
+    search: &ProjectiveSearch<'_, '_>,
     points: &[[f32; 3]],
     found: &mut [u32],
-    r2: f32,
-    window: u32,
 ) {
     #[cfg(target_arch = "x86_64")]
-    if std::arch::is_x86_feature_detected!("avx2") && avx2::suits(grid, window) {
+    if std::arch::is_x86_feature_detected!("avx2") && avx2::suits(search) {
         #[allow(
             unsafe_code,
             reason = "calls a function built for AVX2, on a CPU just found to have it"
         )]
         // SAFETY: `avx2::nearest_points` needs AVX2 and nothing else, and the CPU has it.
         unsafe {
-            avx2::nearest_points(projector, grid, points, found, r2, window);
+            avx2::nearest_points(search, points, found);
         }
         return;
     }
-    plain(projector, grid, points, found, r2, window);
+    plain(search, points, found);
 }
 
 /// [`nearest_points`] one point at a time.
-fn plain(
-    projector: &Projector,
-    grid: &PixelGrid<'_>,
-    points: &[[f32; 3]],
-    found: &mut [u32],
-    r2: f32,
-    window: u32,
-) {
+fn plain(search: &ProjectiveSearch<'_, '_>, points: &[[f32; 3]], found: &mut [u32]) {
     for (&q, found) in points.iter().zip(found) {
-        *found = projector
-            .project(q)
-            .map_or(NONE, |p| grid.nearest(p, r2, window));
+        *found = search.nearest(q);
     }
 }
 
@@ -65,7 +53,7 @@ mod avx2 {
     use std::arch::x86_64::*;
     use std::mem::offset_of;
 
-    use super::super::{Candidate, Cell, NONE, PixelGrid, Projector};
+    use super::super::{Candidate, Cell, NONE, ProjectiveSearch};
 
     // The gathers step by 8 bytes per cell, the depth at its start and the index 4 bytes on.
     const _: () = assert!(
@@ -74,10 +62,11 @@ mod avx2 {
 
     const LANES: usize = 8;
 
-    /// Whether the lanes can search `grid`: a window of at least one ring (the 3x3 block), a grid
+    /// Whether the lanes can run `search`: a window of at least one ring (the 3x3 block), a grid
     /// with an interior, and cell and ray indices that fit the gathers' 32-bit lane offsets.
-    pub fn suits(grid: &PixelGrid<'_>, window: u32) -> bool {
-        window >= 1
+    pub fn suits(search: &ProjectiveSearch<'_, '_>) -> bool {
+        let grid = search.grid;
+        search.window >= 1
             && grid.columns >= 3
             && grid.rows >= 3
             && grid.cells.len() == grid.columns * grid.rows
@@ -86,32 +75,22 @@ mod avx2 {
             && i32::try_from(grid.cells.len()).is_ok()
     }
 
-    /// [`super::nearest_points`] for a grid that [`suits`] the lanes.
+    /// [`super::nearest_points`] for a search that [`suits`] the lanes.
     #[target_feature(enable = "avx2")]
     pub fn nearest_points(
-        projector: &Projector,
-        grid: &PixelGrid<'_>,
+        search: &ProjectiveSearch<'_, '_>,
         points: &[[f32; 3]],
         found: &mut [u32],
-        r2: f32,
-        window: u32,
     ) {
-        let lanes = Lanes::new(projector, grid, r2, window);
+        let lanes = Lanes::new(search);
         let mut groups = points.chunks_exact(LANES);
         let mut outs = found.chunks_exact_mut(LANES);
         for (group, out) in (&mut groups).zip(&mut outs) {
             if let (Ok(group), Ok(out)) = (group.try_into(), out.try_into()) {
-                lanes.search(projector, grid, group, out);
+                lanes.search(search, group, out);
             }
         }
-        super::plain(
-            projector,
-            grid,
-            groups.remainder(),
-            outs.into_remainder(),
-            r2,
-            window,
-        );
+        super::plain(search, groups.remainder(), outs.into_remainder());
     }
 
     /// The search's constants, one per lane.
@@ -131,21 +110,20 @@ mod avx2 {
         last_inner_column: __m256i,
         last_inner_row: __m256i,
         columns: __m256i,
-        r2: f32,
         /// `reach / f` of [`PixelGrid::per_ring`] for x and y, as it computes them.
         reach_x: __m256,
         reach_y: __m256,
         stride: __m256,
         focal: __m256,
-        window: u32,
     }
 
     impl Lanes {
         #[target_feature(enable = "avx2")]
-        fn new(projector: &Projector, grid: &PixelGrid<'_>, r2: f32, window: u32) -> Self {
+        fn new(search: &ProjectiveSearch<'_, '_>) -> Self {
+            let (projector, grid) = (search.projector, search.grid);
             let r = &projector.to_camera.rotation;
             let t = &projector.to_camera.translation;
-            let reach = window as f32 * grid.stride;
+            let reach = search.window as f32 * grid.stride;
             // `suits` has checked that the counts fit an `i32`.
             let count = |n: usize| _mm256_set1_epi32(n as i32);
             Self {
@@ -163,12 +141,10 @@ mod avx2 {
                 last_inner_column: count(grid.columns - 2),
                 last_inner_row: count(grid.rows - 2),
                 columns: count(grid.columns),
-                r2,
                 reach_x: _mm256_set1_ps(reach * grid.inverse_fx),
                 reach_y: _mm256_set1_ps(reach * grid.inverse_fy),
                 stride: _mm256_set1_ps(grid.stride),
                 focal: _mm256_set1_ps(grid.focal),
-                window,
             }
         }
 
@@ -176,11 +152,11 @@ mod avx2 {
         #[target_feature(enable = "avx2")]
         fn search(
             &self,
-            projector: &Projector,
-            grid: &PixelGrid<'_>,
+            search: &ProjectiveSearch<'_, '_>,
             points: &[[f32; 3]; LANES],
             out: &mut [u32; LANES],
         ) {
+            let grid = search.grid;
             let zero = _mm256_setzero_ps();
             let half = _mm256_set1_ps(0.5);
             let one = _mm256_set1_ps(1.0);
@@ -256,7 +232,7 @@ mod avx2 {
             );
 
             // `PixelGrid::block3`: the nearest of the nine cells around (gu, gv).
-            let mut best = _mm256_set1_ps(self.r2);
+            let mut best = _mm256_set1_ps(search.r2);
             let mut best_index = _mm256_set1_epi32(NONE as i32);
             let sign = _mm256_set1_epi32(i32::MIN);
             let cells = grid.cells.as_ptr();
@@ -319,7 +295,7 @@ mod avx2 {
             }
 
             // `PixelGrid::outer_rings`' test for ring 2: which lanes its bound leaves to search.
-            let more = if self.window >= 2 {
+            let more = if search.window >= 2 {
                 let abs = _mm256_castsi256_ps(_mm256_set1_epi32(i32::MAX));
                 let bx = _mm256_add_ps(_mm256_and_ps(x, abs), self.reach_x);
                 let by = _mm256_add_ps(_mm256_and_ps(y, abs), self.reach_y);
@@ -366,14 +342,14 @@ mod avx2 {
                     continue;
                 }
                 // The same arithmetic, so the same projection, in view.
-                let Some(p) = projector.project(points[lane]) else {
+                let Some(p) = search.projector.project(points[lane]) else {
                     continue;
                 };
                 out[lane] = if border & bit != 0 {
-                    grid.nearest(p, self.r2, self.window)
+                    grid.nearest(p, search.r2, search.window)
                 } else {
                     let nearest = Candidate::new(best_d2[lane], best_at[lane]);
-                    grid.outer_rings(&p, grid.cell_of(&p), 2, self.window, nearest)
+                    grid.outer_rings(&p, grid.cell_of(&p), 2, search.window, nearest)
                         .index()
                 };
             }
@@ -394,7 +370,7 @@ mod tests {
     use vlem_core::{Intrinsics, Pose, RigidF32};
 
     use super::super::tests::rough_surface;
-    use super::super::{FrameView, PixelGrid, Projector};
+    use super::super::{FrameView, NONE, PixelGrid, Projector};
     use super::*;
 
     /// The dispatched search (AVX2 on a CPU with it) against the plain one, point for point, on
@@ -449,8 +425,14 @@ mod tests {
                     let r2 = max_distance * max_distance;
                     let mut wide = vec![0; map.len()];
                     let mut plain_found = vec![0; map.len()];
-                    nearest_points(&projector, &grid, &map, &mut wide, r2, window);
-                    plain(&projector, &grid, &map, &mut plain_found, r2, window);
+                    let search = ProjectiveSearch {
+                        projector: &projector,
+                        grid: &grid,
+                        r2,
+                        window,
+                    };
+                    nearest_points(&search, &map, &mut wide);
+                    plain(&search, &map, &mut plain_found);
                     assert_eq!(
                         wide, plain_found,
                         "stride {stride}, window {window}, max distance {max_distance}"
