@@ -29,7 +29,7 @@ use vlem_core::{
 
 pub use self::association::Association;
 use self::association::{Cell, FrameView, NONE};
-use self::voxel_groups::{KEY_AXIS_VOXELS, VoxelGroups, bounding_box};
+use self::voxel_groups::{GroupingBuffers, KEY_AXIS_VOXELS, bounding_box, runs};
 use crate::error::MapError;
 use crate::kit::{
     FramePixels, at_least_one, check_observation, check_snapshot, embedding, invalid_parameter,
@@ -134,6 +134,8 @@ struct Scratch {
     grid: Vec<Cell>,
     /// Per new point, whether a map point chose it.
     chosen: Vec<bool>,
+    /// The downsampling's voxel groupings.
+    grouping: GroupingBuffers,
 }
 
 impl Scratch {
@@ -145,6 +147,7 @@ impl Scratch {
             + self.matches.capacity() * size_of::<u32>()
             + self.grid.capacity() * size_of::<Cell>()
             + self.chosen.capacity() * size_of::<bool>()
+            + self.grouping.memory_bytes()
     }
 }
 
@@ -274,6 +277,7 @@ impl PointCloudMap {
             matches,
             grid,
             chosen,
+            grouping,
         } = scratch;
         self.observe(obs, new);
         let mut stats = IntegrationStats {
@@ -297,7 +301,7 @@ impl PointCloudMap {
         stats.inserted = self.insert(obs, new, chosen);
         let footprint =
             new.mean_depth / obs.frame.intrinsics.fx as f32 * self.config.pixel_stride as f32;
-        stats.removed = self.enforce_budget(footprint);
+        stats.removed = self.enforce_budget(footprint, grouping);
         stats
     }
 
@@ -419,7 +423,7 @@ impl PointCloudMap {
     /// the number of occupied octants could never be met). The finest size tried keeps the voxel
     /// coordinates of the box within the key's 21 bits per axis, so distant points never share a
     /// voxel through clamping.
-    fn enforce_budget(&mut self, footprint: f32) -> usize {
+    fn enforce_budget(&mut self, footprint: f32, buffers: &mut GroupingBuffers) -> usize {
         let budget = self.config.max_points;
         let before = self.positions.len();
         if before <= budget {
@@ -433,24 +437,28 @@ impl PointCloudMap {
             .max(footprint * 0.25)
             .max(1e-4)
             .max(extent / KEY_AXIS_VOXELS);
-        let mut groups = VoxelGroups::new(&self.positions, lo, origin, extent);
-        if groups.count > budget {
+        let GroupingBuffers {
+            held, tried, spare, ..
+        } = buffers;
+        held.group(&self.positions, lo, origin, extent, spare);
+        if held.count > budget {
             // Grow until the budget holds; on surfaces the count falls with the voxel area. At
             // the latest a voxel larger than the bounding box holds everything in one.
+            // `held` is the last size tried until one holds, then the finest that held.
             let mut hi = lo;
             let found = loop {
-                hi *= (groups.count as f32 / budget as f32).sqrt().max(1.1);
+                hi *= (held.count as f32 / budget as f32).sqrt().max(1.1);
                 if !hi.is_finite() {
-                    break None;
+                    break false;
                 }
-                let g = VoxelGroups::new(&self.positions, hi, origin, extent);
-                if g.count <= budget {
-                    break Some(g);
+                tried.group(&self.positions, hi, origin, extent, spare);
+                std::mem::swap(held, tried);
+                if held.count <= budget {
+                    break true;
                 }
                 lo = hi;
-                groups = g;
             };
-            let Some(found) = found else {
+            if !found {
                 // Only for a bounding box beyond f32 (positions near f32::MAX): keep the budget.
                 self.voxel_size = lo;
                 self.positions.truncate(budget);
@@ -459,13 +467,12 @@ impl PointCloudMap {
                 return before - budget;
             };
             // Bisect geometrically between the last size that failed and the first that held.
-            groups = found;
             while hi / lo > 1.05 {
                 let mid = (lo * hi).sqrt();
-                let g = VoxelGroups::new(&self.positions, mid, origin, extent);
-                if g.count <= budget {
+                tried.group(&self.positions, mid, origin, extent, spare);
+                if tried.count <= budget {
                     hi = mid;
-                    groups = g;
+                    std::mem::swap(held, tried);
                 } else {
                     lo = mid;
                 }
@@ -473,7 +480,7 @@ impl PointCloudMap {
             lo = hi;
         }
         self.voxel_size = lo;
-        self.merge(&groups);
+        self.merge(buffers);
         before - self.positions.len()
     }
 
@@ -481,9 +488,16 @@ impl PointCloudMap {
     /// renormalised mean embedding) in the slot of its first member, then removes the other members
     /// by moving points from the end into their slots. The cost is proportional to the points
     /// merged, not to the map size.
-    fn merge(&mut self, groups: &VoxelGroups) {
+    fn merge(&mut self, buffers: &mut GroupingBuffers) {
         let dim = self.dim;
-        let multi: Vec<&[u32]> = groups.runs().filter(|run| run.len() > 1).collect();
+        let GroupingBuffers {
+            held,
+            members,
+            ends,
+            ..
+        } = buffers;
+        held.runs_into(2, members, ends);
+        let multi: Vec<&[u32]> = runs(members, ends).collect();
         let merged_points: Vec<(usize, [f32; 3], [u8; 3])> = multi
             .par_iter()
             .map(|run| {
@@ -522,7 +536,7 @@ impl PointCloudMap {
                     },
                 );
         }
-        let mut dead = Vec::with_capacity(self.positions.len() - groups.count);
+        let mut dead = Vec::with_capacity(self.positions.len() - held.count);
         for (g, (target, p, c)) in merged_points.into_iter().enumerate() {
             self.positions[target] = p;
             self.colours[target] = c;
@@ -621,7 +635,9 @@ impl EmbeddingMap for PointCloudMap {
         self.embeddings =
             EmbeddingStore::from_f32(self.dim, self.config.precision, snapshot.embeddings);
         self.voxel_size = 0.0;
-        let _ = self.enforce_budget(0.0);
+        let mut grouping = std::mem::take(&mut self.scratch.grouping);
+        let _ = self.enforce_budget(0.0, &mut grouping);
+        self.scratch.grouping = grouping;
         Ok(())
     }
 }
