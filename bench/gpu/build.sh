@@ -18,6 +18,10 @@
 #
 #   CUDA_COMPUTE_CAP=90 bench/gpu/build.sh      # 90: H100/H200; 89: RTX 4090/4070 ...
 #
+# The packages for py/ (pure Python; without them their rows are skipped there):
+#   python3 -m venv bench/.venv-torch && bench/.venv-torch/bin/pip install --no-deps timm \
+#       segment-anything mobilesam-mirror open_clip_torch==3.3.0
+#
 # The first build compiles candle's CUDA kernels with nvcc (~5 min) and the release build of the
 # models (~15 min on 2 cores); it uses its own target folder, target/gpu-build, so the CPU builds
 # are not rebuilt. It prints the size of target/gpu-check (the device tool carries at most 64 MiB).
