@@ -179,11 +179,15 @@ fn every_endpoint_answers_and_bad_requests_get_4xx() {
         "{header}"
     );
 
-    // Snapshots: saved on the server's side, and downloaded.
-    let (status, saved) = post(&address, "/snapshot", r#"{"path": "snap.vlem"}"#);
+    // Snapshots: saved on the server's side under names it chooses, and downloaded.
+    let (status, saved) = post(&address, "/snapshot", "");
     assert_eq!(status, 200, "{saved}");
+    assert_eq!(saved["file"], "snapshot-0001.vlem");
     assert_eq!(saved["points"].as_u64(), Some(points));
-    let snap = vlem_core::read_map_file(&dir.path().join("snap.vlem")).unwrap();
+    let (status, second) = post(&address, "/snapshot", "{}");
+    assert_eq!(status, 200, "{second}");
+    assert_eq!(second["file"], "snapshot-0002.vlem");
+    let snap = vlem_core::read_map_file(&dir.path().join("snapshot-0001.vlem")).unwrap();
     assert_eq!(snap.len() as u64, points);
     let (status, file) = get(&address, "/map.vlem");
     assert_eq!(status, 200);
@@ -239,6 +243,199 @@ fn every_endpoint_answers_and_bad_requests_get_4xx() {
     );
     let (status, _) = get(&address, "/status");
     assert_eq!(status, 200, "still serving after the bad requests");
+}
+
+/// One request written by hand on a fresh connection (so that Host, Origin and the rest are
+/// exactly what a hostile page or program would send): the status and the body.
+fn raw(address: &str, head: &str, body: &str) -> (u16, String) {
+    use std::io::{Read, Write};
+    let mut stream = std::net::TcpStream::connect(address).unwrap();
+    stream
+        .set_read_timeout(Some(Duration::from_secs(60)))
+        .unwrap();
+    let request = format!(
+        "{head}\r\nContent-Length: {}\r\nConnection: close\r\n\r\n{body}",
+        body.len()
+    );
+    stream.write_all(request.as_bytes()).unwrap();
+    let mut answer = String::new();
+    stream.read_to_string(&mut answer).unwrap();
+    let status = answer
+        .split_whitespace()
+        .nth(1)
+        .and_then(|s| s.parse().ok())
+        .unwrap_or_else(|| panic!("an HTTP answer: {answer}"));
+    let body = answer
+        .split_once("\r\n\r\n")
+        .map_or("", |(_, b)| b)
+        .to_owned();
+    (status, body)
+}
+
+#[test]
+fn hostile_requests_are_refused() {
+    let dir = tempfile::tempdir().unwrap();
+    let out = dir.path().join("out");
+    let served = serve(&out, &[]);
+    let address = served.address.clone();
+    let port = address.rsplit(':').next().unwrap();
+    let host = format!("Host: 127.0.0.1:{port}");
+
+    // A request path names no file: snapshots go into the output folder under the server's names.
+    let victim = dir.path().join("victim");
+    std::fs::write(&victim, "keep me").unwrap();
+    for body in [
+        format!(r#"{{"path": "{}"}}"#, victim.display()),
+        r#"{"path": "../victim"}"#.to_owned(),
+    ] {
+        let (status, reply) = post(&address, "/snapshot", &body);
+        assert_eq!(status, 400, "{body}: {reply}");
+        assert!(
+            reply["error"]
+                .as_str()
+                .unwrap()
+                .contains("takes no options"),
+            "{reply}"
+        );
+    }
+    assert_eq!(std::fs::read_to_string(&victim).unwrap(), "keep me");
+    assert!(!out.join("snapshot-0001.vlem").exists());
+
+    // DNS rebinding: a page's own host name in Host.
+    for forged in ["Host: attacker.example", "Host: attacker.example:80"] {
+        let (status, body) = raw(&address, &format!("GET /map.vlem HTTP/1.1\r\n{forged}"), "");
+        assert_eq!(status, 403, "{forged}: {body}");
+        assert!(body.contains("not this server"), "{body}");
+    }
+    let (status, _) = raw(&address, "GET /status HTTP/1.1", "");
+    assert_eq!(status, 400, "a request without Host");
+    let (status, _) = raw(&address, &format!("GET /status HTTP/1.1\r\n{host}"), "");
+    assert_eq!(status, 200, "the same request with a loopback Host");
+
+    // Cross-site requests: a simple text/plain POST, and any foreign Origin.
+    let snapshot = format!("POST /snapshot HTTP/1.1\r\n{host}");
+    let (status, body) = raw(
+        &address,
+        &format!("{snapshot}\r\nContent-Type: text/plain"),
+        "{}",
+    );
+    assert_eq!(status, 415, "{body}");
+    assert!(body.contains("application/json"), "{body}");
+    let (status, _) = raw(
+        &address,
+        &format!(
+            "{snapshot}\r\nContent-Type: application/json\r\nOrigin: https://attacker.example"
+        ),
+        "{}",
+    );
+    assert_eq!(status, 403);
+    let (status, _) = raw(
+        &address,
+        &format!("GET /map.vlem HTTP/1.1\r\n{host}\r\nOrigin: null"),
+        "",
+    );
+    assert_eq!(status, 403);
+    assert!(!out.join("snapshot-0001.vlem").exists());
+
+    // Bounded queries: too many texts, or too long a text, is a 413 naming the limit.
+    let many = serde_json::json!({ "texts": vec!["red"; 10_000] }).to_string();
+    let (status, reply) = post(&address, "/query", &many);
+    assert_eq!(status, 413, "{reply}");
+    assert!(
+        reply["error"].as_str().unwrap().contains("the limit is 32"),
+        "{reply}"
+    );
+    let long = serde_json::json!({ "texts": ["r".repeat(300)] }).to_string();
+    let (status, reply) = post(&address, "/query", &long);
+    assert_eq!(status, 413, "{reply}");
+    assert!(
+        reply["error"].as_str().unwrap().contains("256 bytes"),
+        "{reply}"
+    );
+    let (status, _) = get(&address, &format!("/heatmap.ply?text={}", "r".repeat(300)));
+    assert_eq!(status, 413);
+
+    // After all of it the run is whole and the server answers.
+    wait_finished(&address);
+    let (status, reply) = post(&address, "/query", r#"{"texts": ["red"]}"#);
+    assert_eq!(status, 200, "{reply}");
+}
+
+#[test]
+fn a_bearer_token_is_required_when_set() {
+    let dir = tempfile::tempdir().unwrap();
+    let token = "0123456789abcdef0123456789abcdef";
+    let served = serve(dir.path(), &["--serve-token", token]);
+    let address = served.address.clone();
+    let (status, body) = get(&address, "/status");
+    assert_eq!(status, 401);
+    assert!(
+        String::from_utf8_lossy(&body).contains("Authorization: Bearer"),
+        "{}",
+        String::from_utf8_lossy(&body)
+    );
+    let mut response = agent()
+        .get(format!("http://{address}/status"))
+        .header("Authorization", format!("Bearer {token}"))
+        .call()
+        .unwrap();
+    assert_eq!(response.status().as_u16(), 200);
+    assert!(
+        response
+            .body_mut()
+            .read_to_string()
+            .unwrap()
+            .contains("\"state\"")
+    );
+    // The client takes the token from the environment, as `vlem run` does.
+    wait_finished_with(&address, token);
+    let out = common::fails(&["query", "--connect", &address, "red"]);
+    assert!(out.contains("401"), "{out}");
+    let output = Command::new(env!("CARGO_BIN_EXE_vlem"))
+        .args(["query", "--connect", &address, "red"])
+        .env("VLEM_SERVE_TOKEN", token)
+        .current_dir(repo())
+        .output()
+        .unwrap();
+    let stdout = String::from_utf8_lossy(&output.stdout);
+    assert!(
+        output.status.success(),
+        "{stdout}{}",
+        String::from_utf8_lossy(&output.stderr)
+    );
+    assert!(stdout.contains("30 frames integrated"), "{stdout}");
+    // A token too short to be one is refused at start-up.
+    let short = common::fails(&[
+        "run",
+        "--config",
+        "configs/demo.toml",
+        "--out",
+        dir.path().to_str().unwrap(),
+        "--serve",
+        "127.0.0.1:0",
+        "--serve-token",
+        "secret",
+    ]);
+    assert!(short.contains("at least 16"), "{short}");
+}
+
+/// [`wait_finished`] for a server that requires a token.
+fn wait_finished_with(address: &str, token: &str) {
+    let start = Instant::now();
+    loop {
+        let mut response = agent()
+            .get(format!("http://{address}/status"))
+            .header("Authorization", format!("Bearer {token}"))
+            .call()
+            .unwrap();
+        let value: serde_json::Value =
+            serde_json::from_str(&response.body_mut().read_to_string().unwrap()).unwrap();
+        if value["run"]["state"] == "finished" {
+            return;
+        }
+        assert!(start.elapsed() < Duration::from_secs(120), "{value}");
+        std::thread::sleep(Duration::from_millis(50));
+    }
 }
 
 #[test]

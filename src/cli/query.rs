@@ -28,6 +28,14 @@ pub struct QueryArgs {
     /// Address of a running `vlem run --serve ADDR` to query its live map instead.
     #[arg(long, value_name = "127.0.0.1:PORT")]
     connect: Option<String>,
+    /// Bearer token of a server started with `--serve-token` (with --connect).
+    #[arg(
+        long,
+        env = "VLEM_SERVE_TOKEN",
+        hide_env_values = true,
+        value_name = "TOKEN"
+    )]
+    token: Option<String>,
     /// Write a PLY heatmap (jet colours); with several queries, one file per query.
     #[arg(long)]
     ply: Option<PathBuf>,
@@ -108,7 +116,10 @@ impl QuerySession {
                 if args.rerun.rerun.is_some() || args.rerun.rerun_connect.is_some() {
                     bail!("--rerun records a loaded map: it does not combine with --connect");
                 }
-                let client = Client::new(address);
+                let client = match &args.token {
+                    Some(token) => Client::new(address).with_token(token),
+                    None => Client::new(address),
+                };
                 let status = client.status()?;
                 let map = status
                     .map

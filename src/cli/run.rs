@@ -11,7 +11,7 @@ use vlem_core::pipeline::{Pipeline, Progress, RunReport};
 use vlem_core::{BuildContext, Config, EmbeddingMap, Registry};
 use vlem_query::answer::{AnswerOptions, answer_snapshot, slug};
 use vlem_query::heatmap::heatmap_ply;
-use vlem_server::{QueryServer, ServeOptions};
+use vlem_server::{QueryServer, RequestLimits, ServeOptions};
 
 use super::RerunArgs;
 use crate::output;
@@ -60,7 +60,7 @@ pub struct DemoArgs {
 }
 
 /// The query server's flags.
-#[derive(Args, Clone, Default)]
+#[derive(Args, Clone)]
 struct ServeArgs {
     /// Serve the live map over HTTP/JSON while mapping, on a loopback address such as
     /// 127.0.0.1:8765 (GET /status, POST /query, GET /heatmap.ply, POST /snapshot, GET /map.vlem;
@@ -70,6 +70,22 @@ struct ServeArgs {
     /// Keep serving after the run has finished and written its outputs, until interrupted.
     #[arg(long, requires = "serve")]
     serve_after: bool,
+    /// Require `Authorization: Bearer TOKEN` on every request (at least 16 printable
+    /// characters), for reaching the port through a tunnel; prefer the environment variable,
+    /// which other users cannot read from the process list.
+    #[arg(
+        long,
+        env = "VLEM_SERVE_TOKEN",
+        hide_env_values = true,
+        value_name = "TOKEN"
+    )]
+    serve_token: Option<String>,
+    /// Most texts one `POST /query` may ask (413 above it).
+    #[arg(long, value_name = "N", default_value_t = RequestLimits::DEFAULT_MAX_TEXTS, requires = "serve")]
+    serve_max_texts: usize,
+    /// Most bytes of one query text (413 above it).
+    #[arg(long, value_name = "BYTES", default_value_t = RequestLimits::DEFAULT_MAX_TEXT_BYTES, requires = "serve")]
+    serve_max_text_bytes: usize,
 }
 
 /// Command-line choices of `vlem run` beyond the config.
@@ -147,8 +163,12 @@ fn run(mut config: Config, ctx: BuildContext, out: &Path, options: &RunOptions<'
                 address,
                 live.clone(),
                 ServeOptions {
-                    out_dir: out.to_path_buf(),
-                    ctx: ctx.clone(),
+                    token: options.serve.serve_token.clone(),
+                    limits: RequestLimits {
+                        max_texts: options.serve.serve_max_texts,
+                        max_text_bytes: options.serve.serve_max_text_bytes,
+                    },
+                    ..ServeOptions::new(out.to_path_buf(), ctx.clone())
                 },
             )
         })

@@ -26,14 +26,19 @@ pub struct QueryRequest {
     pub indices: bool,
 }
 
-/// `POST /snapshot`: where to save the map file.
-#[derive(Clone, Debug, Default, PartialEq, Serialize, Deserialize)]
-#[serde(deny_unknown_fields)]
-pub struct SnapshotRequest {
-    /// Path of the map file on the server's machine; relative paths are taken from the run's
-    /// output folder. Default: `snapshot.vlem` there.
-    #[serde(default)]
-    pub path: Option<String>,
+/// `POST /snapshot`'s answer: where the server saved the map.
+#[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
+pub struct SnapshotSaved {
+    /// The saved file's path on the server's machine.
+    pub path: String,
+    /// Its name in the run's output folder (`snapshot-NNNN.vlem`).
+    pub file: String,
+    /// Map elements saved.
+    pub points: usize,
+    /// Frames integrated into the saved map.
+    pub frames_integrated: usize,
+    /// Bytes of the file.
+    pub bytes: u64,
 }
 
 /// The map part of [`Status`].

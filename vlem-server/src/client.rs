@@ -8,7 +8,7 @@ use ureq::Agent;
 use ureq::http::Response;
 use vlem_query::answer::Answer;
 
-use crate::api::{ErrorReply, QueryRequest, SnapshotRequest, Status};
+use crate::api::{ErrorReply, QueryRequest, SnapshotSaved, Status};
 use crate::error::ServerError;
 
 /// A connection to a query server at `host:port` (plain HTTP, loopback).
@@ -16,6 +16,8 @@ pub struct Client {
     base: String,
     address: String,
     agent: Agent,
+    /// `Authorization: Bearer …` for a server started with a token.
+    authorization: Option<String>,
 }
 
 impl Client {
@@ -37,6 +39,23 @@ impl Client {
             base,
             address: address.to_owned(),
             agent,
+            authorization: None,
+        }
+    }
+
+    /// Sends `Authorization: Bearer TOKEN` with every request (for a server started with
+    /// `--serve-token`).
+    #[must_use]
+    pub fn with_token(mut self, token: &str) -> Self {
+        self.authorization = Some(format!("Bearer {token}"));
+        self
+    }
+
+    fn get(&self, path: &str) -> ureq::RequestBuilder<ureq::typestate::WithoutBody> {
+        let request = self.agent.get(format!("{}{path}", self.base));
+        match &self.authorization {
+            Some(value) => request.header("Authorization", value),
+            None => request,
         }
     }
 
@@ -46,11 +65,7 @@ impl Client {
     /// [`ServerError::Connect`] when the server cannot be reached, [`ServerError::Status`] for an
     /// error answer, [`ServerError::Body`] for an unreadable one.
     pub fn status(&self) -> Result<Status, ServerError> {
-        let response = self
-            .agent
-            .get(format!("{}/status", self.base))
-            .call()
-            .map_err(|e| self.connect(&e))?;
+        let response = self.get("/status").call().map_err(|e| self.connect(&e))?;
         json(response)
     }
 
@@ -62,12 +77,13 @@ impl Client {
         self.post("/query", request)
     }
 
-    /// `POST /snapshot`: the server saves its map; returns its JSON reply (path, points, frames).
+    /// `POST /snapshot`: the server saves its map into its output folder under a name it
+    /// chooses, and says where.
     ///
     /// # Errors
     /// As [`Client::status`].
-    pub fn snapshot(&self, request: &SnapshotRequest) -> Result<serde_json::Value, ServerError> {
-        self.post("/snapshot", request)
+    pub fn snapshot(&self) -> Result<SnapshotSaved, ServerError> {
+        self.post("/snapshot", &serde_json::json!({}))
     }
 
     /// `GET /heatmap.ply?text=...`: the binary PLY heatmap of one text.
@@ -76,8 +92,7 @@ impl Client {
     /// As [`Client::status`].
     pub fn heatmap(&self, text: &str, grasp: bool) -> Result<Vec<u8>, ServerError> {
         let response = self
-            .agent
-            .get(format!("{}/heatmap.ply", self.base))
+            .get("/heatmap.ply")
             .query("text", text)
             .query("grasp", if grasp { "1" } else { "0" })
             .call()
@@ -90,11 +105,7 @@ impl Client {
     /// # Errors
     /// As [`Client::status`].
     pub fn map_file(&self) -> Result<Vec<u8>, ServerError> {
-        let response = self
-            .agent
-            .get(format!("{}/map.vlem", self.base))
-            .call()
-            .map_err(|e| self.connect(&e))?;
+        let response = self.get("/map.vlem").call().map_err(|e| self.connect(&e))?;
         bytes(response)
     }
 
@@ -103,11 +114,12 @@ impl Client {
         path: &str,
         body: &impl Serialize,
     ) -> Result<T, ServerError> {
-        let response = self
-            .agent
-            .post(format!("{}{path}", self.base))
-            .send_json(body)
-            .map_err(|e| self.connect(&e))?;
+        let mut request = self.agent.post(format!("{}{path}", self.base));
+        if let Some(value) = &self.authorization {
+            request = request.header("Authorization", value);
+        }
+        // send_json declares `Content-Type: application/json`, which the server requires.
+        let response = request.send_json(body).map_err(|e| self.connect(&e))?;
         json(response)
     }
 

@@ -12,6 +12,14 @@ pub enum ServerError {
         /// Why not.
         reason: String,
     },
+    /// A server option that cannot work (an empty or short token, a zero limit).
+    #[error("cannot serve with this {option}: {reason}")]
+    Option {
+        /// The option's name.
+        option: &'static str,
+        /// Why not.
+        reason: String,
+    },
     /// The listening socket could not be opened.
     #[error("cannot listen on {address}: {reason}")]
     Listen {

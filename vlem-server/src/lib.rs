@@ -7,19 +7,24 @@
 //! never stops the mapping run: bad requests get a 4xx status with a message, and a handler that
 //! fails unexpectedly answers 500.
 //!
+//! Who may ask is decided in `guard.rs` before a request is routed: a loopback `Host` with
+//! the server's port, no cross-site `Origin`, JSON POSTs only, and an optional bearer token (the
+//! README's threat model says why each one).
+//!
 //! Endpoints (JSON unless said otherwise; see [`api`] for the bodies):
 //! - `GET /status`: the run's counters, the latest pose and the map's size ([`api::Status`]);
 //! - `POST /query`: texts → answers ([`api::QueryRequest`] → [`vlem_query::answer::Answer`]);
 //! - `GET /heatmap.ply?text=...`: one text's heatmap as binary PLY;
-//! - `POST /snapshot`: save the map as it is to a map file on the server's machine
-//!   ([`api::SnapshotRequest`] → [`vlem_core::live::SavedMap`]);
+//! - `POST /snapshot`: save the map as it is into the run's output folder, under the next free
+//!   name `snapshot-NNNN.vlem` (the request names no path);
 //! - `GET /map.vlem`: the map as it is, as a map file in the response body.
 
 pub mod api;
 mod client;
 mod error;
+mod guard;
 mod server;
 
 pub use client::Client;
 pub use error::ServerError;
-pub use server::{QueryServer, ServeOptions};
+pub use server::{QueryServer, RequestLimits, ServeOptions};

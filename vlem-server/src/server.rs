@@ -7,9 +7,9 @@
 use std::io::Read;
 use std::net::{SocketAddr, ToSocketAddrs};
 use std::panic::{AssertUnwindSafe, catch_unwind};
-use std::path::{Path, PathBuf};
-use std::sync::Arc;
+use std::path::PathBuf;
 use std::sync::atomic::{AtomicBool, Ordering};
+use std::sync::{Arc, Mutex, PoisonError};
 use std::thread::JoinHandle;
 use std::time::Duration;
 
@@ -22,8 +22,9 @@ use vlem_query::answer::{AnswerOptions, Selection, answer_live};
 use vlem_query::grasp::GraspParams;
 use vlem_query::heatmap::{gripper_vertices, heatmap_ply};
 
-use crate::api::{ErrorReply, MapStatus, QueryRequest, SnapshotRequest, Status};
+use crate::api::{ErrorReply, MapStatus, QueryRequest, SnapshotSaved, Status};
 use crate::error::ServerError;
+use crate::guard::{Access, RequestHead, validate_token};
 
 /// Largest request body accepted (texts and options only).
 const MAX_BODY_BYTES: usize = 1 << 20;
@@ -32,13 +33,70 @@ const WORKERS: usize = 4;
 /// How often an idle worker looks at the stop flag.
 const POLL: Duration = Duration::from_millis(100);
 
-/// Where the server resolves things.
-#[derive(Clone, Debug)]
+/// Where the server resolves things, who may ask it, and how much one request may ask.
+#[derive(Clone)]
 pub struct ServeOptions {
-    /// Folder that relative snapshot paths are taken from (the run's output folder).
+    /// Folder that `POST /snapshot` writes into (the run's output folder), under names the
+    /// server chooses.
     pub out_dir: PathBuf,
     /// Build context for segmenters named in requests.
     pub ctx: BuildContext,
+    /// A bearer token every request must carry (`Authorization: Bearer TOKEN`), for users who
+    /// reach the port through a tunnel; `None` (the default) serves loopback clients without one.
+    pub token: Option<String>,
+    /// Bounds on what one request may ask.
+    pub limits: RequestLimits,
+}
+
+impl ServeOptions {
+    /// Options for a run writing into `out_dir`: no token, default limits.
+    pub fn new(out_dir: PathBuf, ctx: BuildContext) -> Self {
+        Self {
+            out_dir,
+            ctx,
+            token: None,
+            limits: RequestLimits::default(),
+        }
+    }
+}
+
+impl std::fmt::Debug for ServeOptions {
+    // The token stays out of logs.
+    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
+        f.debug_struct("ServeOptions")
+            .field("out_dir", &self.out_dir)
+            .field("token", &self.token.as_ref().map(|_| "<set>"))
+            .field("limits", &self.limits)
+            .finish_non_exhaustive()
+    }
+}
+
+/// Bounds on one request: a query's work grows with its texts (one score per map point each), so
+/// their number and length are capped; a request over a bound is answered 413 with the bound.
+#[derive(Clone, Copy, Debug, PartialEq, Eq)]
+pub struct RequestLimits {
+    /// Texts in one `POST /query` (default [`RequestLimits::DEFAULT_MAX_TEXTS`]).
+    pub max_texts: usize,
+    /// Bytes (UTF-8) of one query text or baseline (default
+    /// [`RequestLimits::DEFAULT_MAX_TEXT_BYTES`]).
+    pub max_text_bytes: usize,
+}
+
+impl RequestLimits {
+    /// Default texts per query: more than an interactive user types, few enough that one query's
+    /// scores stay small (32 × 4 bytes per map point).
+    pub const DEFAULT_MAX_TEXTS: usize = 32;
+    /// Default bytes per text: a sentence, not a document.
+    pub const DEFAULT_MAX_TEXT_BYTES: usize = 256;
+}
+
+impl Default for RequestLimits {
+    fn default() -> Self {
+        Self {
+            max_texts: Self::DEFAULT_MAX_TEXTS,
+            max_text_bytes: Self::DEFAULT_MAX_TEXT_BYTES,
+        }
+    }
 }
 
 /// A running query server; dropping it (or [`QueryServer::shutdown`]) stops it.
@@ -53,10 +111,28 @@ impl QueryServer {
     /// picks a free port, see [`QueryServer::address`]).
     ///
     /// # Errors
-    /// [`ServerError::Address`] for an address that does not parse or is not loopback (the server
-    /// has no authentication), [`ServerError::Listen`] when the port cannot be bound.
+    /// [`ServerError::Address`] for an address that does not parse or is not loopback,
+    /// [`ServerError::Option`] for a token or limit that cannot work, [`ServerError::Listen`] when
+    /// the port cannot be bound.
     pub fn start(address: &str, live: LiveMap, options: ServeOptions) -> Result<Self, ServerError> {
         let socket = loopback_address(address)?;
+        if let Some(token) = &options.token {
+            validate_token(token).map_err(|reason| ServerError::Option {
+                option: "token",
+                reason,
+            })?;
+        }
+        for (option, value) in [
+            ("max_texts", options.limits.max_texts),
+            ("max_text_bytes", options.limits.max_text_bytes),
+        ] {
+            if value == 0 {
+                return Err(ServerError::Option {
+                    option,
+                    reason: "must be at least 1".into(),
+                });
+            }
+        }
         let server = Server::http(socket).map_err(|e| ServerError::Listen {
             address: address.into(),
             reason: e.to_string(),
@@ -70,7 +146,13 @@ impl QueryServer {
             })?;
         let server = Arc::new(server);
         let stop = Arc::new(AtomicBool::new(false));
-        let shared = Arc::new(Handler { live, options });
+        let access = Access::new(bound.port(), options.token.clone());
+        let shared = Arc::new(Handler {
+            live,
+            options,
+            access,
+            snapshot_lock: Mutex::new(()),
+        });
         let workers = (0..WORKERS)
             .map(|_| {
                 let (server, stop, handler) = (server.clone(), stop.clone(), shared.clone());
@@ -152,6 +234,8 @@ struct Reply {
     content_type: &'static str,
     body: Vec<u8>,
     file_name: Option<String>,
+    /// `WWW-Authenticate: Bearer` on a 401 (RFC 6750).
+    challenge: bool,
 }
 
 impl Reply {
@@ -162,6 +246,7 @@ impl Reply {
                 content_type: "application/json",
                 body,
                 file_name: None,
+                challenge: false,
             },
             Err(e) => Self::error(500, format!("cannot encode the answer: {e}")),
         }
@@ -177,6 +262,7 @@ impl Reply {
             content_type: "application/json",
             body,
             file_name: None,
+            challenge: false,
         }
     }
 
@@ -186,6 +272,7 @@ impl Reply {
             content_type: "application/octet-stream",
             body,
             file_name: Some(file_name),
+            challenge: false,
         }
     }
 }
@@ -193,11 +280,40 @@ impl Reply {
 struct Handler {
     live: LiveMap,
     options: ServeOptions,
+    access: Access,
+    /// One snapshot at a time: choosing a free file name and writing it is one step, and two
+    /// encodings of a large map at once would double the memory a snapshot takes.
+    snapshot_lock: Mutex<()>,
+}
+
+/// The value of the first header named `name`.
+fn header<'a>(request: &'a Request, name: &'static str) -> Option<&'a str> {
+    request
+        .headers()
+        .iter()
+        .find(|h| h.field.equiv(name))
+        .map(|h| h.value.as_str())
 }
 
 impl Handler {
+    /// The access checks of [`crate::guard`], before the body is read.
+    fn admit(&self, request: &Request) -> Result<(), Reply> {
+        let head = RequestHead {
+            post: *request.method() == Method::Post,
+            host: header(request, "Host"),
+            origin: header(request, "Origin"),
+            content_type: header(request, "Content-Type"),
+            authorization: header(request, "Authorization"),
+        };
+        self.access.check(&head).map_err(|refusal| {
+            let mut reply = Reply::error(refusal.status, refusal.message);
+            reply.challenge = refusal.status == 401 && self.access.has_token();
+            reply
+        })
+    }
+
     fn respond(&self, mut request: Request) {
-        let reply = match read_body(&mut request) {
+        let reply = match self.admit(&request).and_then(|()| read_body(&mut request)) {
             Ok(body) => {
                 let (method, url) = (request.method().clone(), request.url().to_owned());
                 catch_unwind(AssertUnwindSafe(|| self.route(&method, &url, &body))).unwrap_or_else(
@@ -220,6 +336,11 @@ impl Handler {
                 "Content-Disposition",
                 format!("attachment; filename=\"{name}\""),
             )
+        {
+            response.add_header(h);
+        }
+        if reply.challenge
+            && let Ok(h) = Header::from_bytes("WWW-Authenticate", "Bearer realm=\"vlem\"")
         {
             response.add_header(h);
         }
@@ -274,6 +395,9 @@ impl Handler {
             Ok(r) => r,
             Err(e) => return Reply::error(400, format!("bad query request: {e}")),
         };
+        if let Err(reply) = self.within_limits(&request.texts, request.baseline.as_deref()) {
+            return reply;
+        }
         let selection = Selection {
             segmenter: request
                 .segmenter
@@ -306,6 +430,9 @@ impl Handler {
         let [text] = texts.as_slice() else {
             return Reply::error(400, "give exactly one text: /heatmap.ply?text=mug");
         };
+        if let Err(reply) = self.within_limits(std::slice::from_ref(text), None) {
+            return reply;
+        }
         let grasp = params
             .iter()
             .any(|(k, v)| k == "grasp" && v != "0" && v != "false");
@@ -344,29 +471,87 @@ impl Handler {
         }
     }
 
+    /// 413 with the bound when a request asks for more texts, or longer ones, than allowed.
+    fn within_limits(&self, texts: &[String], baseline: Option<&str>) -> Result<(), Reply> {
+        let limits = &self.options.limits;
+        if texts.len() > limits.max_texts {
+            return Err(Reply::error(
+                413,
+                format!(
+                    "{} query texts in one request; the limit is {} (max_texts; \
+                     `vlem run --serve-max-texts N` raises it)",
+                    texts.len(),
+                    limits.max_texts
+                ),
+            ));
+        }
+        let longest = texts
+            .iter()
+            .map(String::as_str)
+            .chain(baseline)
+            .map(str::len)
+            .max()
+            .unwrap_or(0);
+        if longest > limits.max_text_bytes {
+            return Err(Reply::error(
+                413,
+                format!(
+                    "a query text of {longest} bytes; the limit is {} bytes per text \
+                     (max_text_bytes; `vlem run --serve-max-text-bytes N` raises it)",
+                    limits.max_text_bytes
+                ),
+            ));
+        }
+        Ok(())
+    }
+
+    /// `POST /snapshot`: the map as it is, saved into the run's output folder under the next free
+    /// name `snapshot-NNNN.vlem`. The request names no path: a file path from the network could
+    /// replace any file the server's user can write.
     fn snapshot(&self, body: &[u8]) -> Reply {
-        let request: SnapshotRequest = if body.iter().all(u8::is_ascii_whitespace) {
-            SnapshotRequest::default()
-        } else {
-            match serde_json::from_slice(body) {
-                Ok(r) => r,
+        if !body.iter().all(u8::is_ascii_whitespace) {
+            match serde_json::from_slice::<serde_json::Value>(body) {
+                Ok(serde_json::Value::Object(fields)) if fields.is_empty() => {}
+                Ok(serde_json::Value::Object(fields)) => {
+                    let names: Vec<&str> = fields.keys().map(String::as_str).collect();
+                    return Reply::error(
+                        400,
+                        format!(
+                            "POST /snapshot takes no options (got {}): the server saves into the \
+                             run's output folder under a name it chooses (snapshot-NNNN.vlem) and \
+                             answers with it; GET /map.vlem downloads the map instead",
+                            names.join(", ")
+                        ),
+                    );
+                }
+                Ok(_) => return Reply::error(400, "bad snapshot request: expected {} or nothing"),
                 Err(e) => return Reply::error(400, format!("bad snapshot request: {e}")),
             }
+        }
+        let _one_at_a_time = self
+            .snapshot_lock
+            .lock()
+            .unwrap_or_else(PoisonError::into_inner);
+        let Some(name) = free_snapshot_name(&self.options.out_dir) else {
+            return Reply::error(
+                507,
+                format!(
+                    "{} holds {MAX_SNAPSHOTS} snapshots already; move them away to take more",
+                    self.options.out_dir.display()
+                ),
+            );
         };
-        let path = match &request.path {
-            Some(p) if Path::new(p).is_absolute() => PathBuf::from(p),
-            Some(p) => self.options.out_dir.join(p),
-            None => self.options.out_dir.join("snapshot.vlem"),
-        };
+        let path = self.options.out_dir.join(&name);
         match self.live.save(&path) {
             Ok(saved) => Reply::json(
                 200,
-                &serde_json::json!({
-                    "path": path.display().to_string(),
-                    "points": saved.points,
-                    "frames_integrated": saved.frames_integrated,
-                    "bytes": saved.bytes,
-                }),
+                &SnapshotSaved {
+                    path: path.display().to_string(),
+                    file: name,
+                    points: saved.points,
+                    frames_integrated: saved.frames_integrated,
+                    bytes: saved.bytes,
+                },
             ),
             Err(vlem_core::CoreError::MissingStage { message }) => Reply::error(409, message),
             Err(e) => Reply::error(500, e.to_string()),
@@ -386,6 +571,20 @@ impl Handler {
             Err(e) => Reply::error(500, e.to_string()),
         }
     }
+}
+
+/// Snapshots one output folder takes (`snapshot-0001.vlem` … `snapshot-9999.vlem`).
+const MAX_SNAPSHOTS: u32 = 9999;
+
+/// The first `snapshot-NNNN.vlem` that does not exist in `dir` (nothing is ever replaced, so
+/// snapshots of an earlier run into the same folder stay); `None` when all are taken.
+fn free_snapshot_name(dir: &std::path::Path) -> Option<String> {
+    (1..=MAX_SNAPSHOTS)
+        .map(|n| format!("snapshot-{n:04}.vlem"))
+        .find(|name| {
+            // A dangling symlink is taken too: saving would follow it.
+            std::fs::symlink_metadata(dir.join(name)).is_err()
+        })
 }
 
 /// The status a query failure gets: the client's fault (4xx) unless the server broke.
@@ -473,6 +672,21 @@ mod tests {
                 ("bad".into(), "%zz".into()),
                 ("end".into(), "%4".into()),
             ]
+        );
+    }
+
+    #[test]
+    fn snapshot_names_skip_existing_files() {
+        let dir = tempfile::tempdir().unwrap();
+        assert_eq!(
+            free_snapshot_name(dir.path()).as_deref(),
+            Some("snapshot-0001.vlem")
+        );
+        std::fs::write(dir.path().join("snapshot-0001.vlem"), b"x").unwrap();
+        std::fs::create_dir(dir.path().join("snapshot-0002.vlem")).unwrap();
+        assert_eq!(
+            free_snapshot_name(dir.path()).as_deref(),
+            Some("snapshot-0003.vlem")
         );
     }
 
