@@ -74,6 +74,7 @@ fn main() -> Result<()> {
             mode: Mode::RealTime,
             queue_capacity: 2,
             frame_rate: 30.0,
+            ..PipelineConfig::default()
         },
     )?;
 

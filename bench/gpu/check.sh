@@ -13,11 +13,12 @@
 # 2. each model's time per 640x480 frame on the GPU against PyTorch on the same GPU
 #    (bench/models/side_by_side.py --device cuda, one JSON line per model: models.jsonl);
 #    rows whose reference package is missing there are skipped with a line saying so;
-# 3. one end-to-end real-time run of the shared sequence with graph regions and CLIP ViT-B/16
-#    (random weights) on the GPU (configs/realtime-cuda-clip.toml): its embedding rate in frames
-#    per second (e2e.json); then the same stages offline, every frame embedded, whose per-stage
-#    means are the steady cost without the real-time run's few frames and first-frame start-up
-#    (e2e-offline.json).
+# 3. end-to-end runs of the shared sequence with graph regions and CLIP ViT-B/16 (random weights)
+#    on the GPU (configs/realtime-cuda-clip.toml): the real-time run as committed (overlapped
+#    embedding stages) and with `[pipeline] stages = "serial"`, each one's embedding rate in
+#    frames per second (e2e.json, e2e-serial.json); then the same stages offline, every frame
+#    embedded, overlapped and serial (e2e-offline.json, e2e-offline-serial.json), whose per-stage
+#    busy times and waits say which stage sets the rate.
 # The summary is OUT_DIR/summary.txt; every log is beside it. Exit status: the number of failed
 # parts (0: all passed).
 set -uo pipefail
@@ -141,7 +142,12 @@ if wanted 3; then
         >"$OUT/realtime-cuda-clip.toml"
     sed 's|^mode = "real-time"|mode = "offline"|' "$OUT/realtime-cuda-clip.toml" \
         >"$OUT/offline-cuda-clip.toml"
-    for run in e2e:realtime e2e-offline:offline; do
+    for mode in realtime offline; do
+        sed 's|^\[pipeline\]|[pipeline]\nstages = "serial"|' "$OUT/$mode-cuda-clip.toml" \
+            >"$OUT/$mode-serial-cuda-clip.toml"
+    done
+    for run in e2e:realtime e2e-serial:realtime-serial e2e-offline:offline \
+        e2e-offline-serial:offline-serial; do
         name=${run%%:*}
         say "   ${run#*:}:"
         if timeout 180 "$G/bin/vlem" run --config "$OUT/${run#*:}-cuda-clip.toml" \
@@ -153,7 +159,11 @@ f, wall = s["frames"], s["wall_seconds"]
 print(json.dumps({
     "frames": f["total"], "embedded": f["processed"], "skipped": f["skipped"], "lost": f["lost"],
     "wall_s": round(wall, 2), "embedding_rate_fps": round(f["processed"] / wall, 2),
+    "stages": s.get("stages"),
     "mean_ms": {k: round(v, 1) for k, v in s["mean_ms"].items()},
+    "busy_ms": {k: round(v["busy"]["total_ms"]) for k, v in s.get("stage_load", {}).items()},
+    "wait_in_ms": {k: round(v["wait_input_ms"]) for k, v in s.get("stage_load", {}).items()},
+    "wait_out_ms": {k: round(v["wait_output_ms"]) for k, v in s.get("stage_load", {}).items()},
 }))
 PY
         else

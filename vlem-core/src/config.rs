@@ -358,6 +358,20 @@ pub enum Mode {
     RealTime,
 }
 
+/// How the embedding stages (proposal, encoding, integration) share threads.
+#[derive(Clone, Copy, Debug, Default, Deserialize, Serialize, PartialEq, Eq)]
+#[serde(rename_all = "kebab-case")]
+pub enum StageLayout {
+    /// Each stage in a worker of its own, joined by bounded queues: while the map integrates frame
+    /// k, the encoder embeds frame k+1 and the proposer segments frame k+2, so the embedding rate
+    /// is the slowest stage's, not the sum.
+    #[default]
+    Overlapped,
+    /// All stages one after another in one worker (the pipeline before stages overlapped; the
+    /// same map, for comparisons).
+    Serial,
+}
+
 /// `[pipeline]`: threading and real-time behaviour.
 #[derive(Clone, Debug, Deserialize, Serialize, PartialEq)]
 #[serde(deny_unknown_fields)]
@@ -371,24 +385,47 @@ pub struct PipelineConfig {
     /// Sensor frame rate that real-time mode replays the dataset at; default 30.
     #[serde(default = "default_frame_rate")]
     pub frame_rate: f64,
+    /// `overlapped` (default) or `serial`.
+    #[serde(default)]
+    pub stages: StageLayout,
+    /// Frames that may wait between two overlapped embedding stages; default 1.
+    #[serde(default = "default_stage_queue")]
+    pub stage_queue_capacity: usize,
 }
 
 fn default_queue() -> usize {
     2
 }
 
+fn default_stage_queue() -> usize {
+    1
+}
+
+/// The largest queue capacity accepted: a queue's slots are allocated when a run starts, and each
+/// waiting frame holds its images (a few MB), so more than this is a mistake, not a buffer.
+pub const MAX_QUEUE_CAPACITY: usize = 1024;
+
 impl PipelineConfig {
-    /// Checks the values a run cannot use, without building anything: `queue_capacity` must be at
-    /// least 1 and, in real-time mode, `frame_rate` a positive finite rate whose period (1 /
-    /// `frame_rate`) a [`Duration`] can hold.
+    /// Checks the values a run cannot use, without building anything: `queue_capacity` and
+    /// `stage_queue_capacity` must lie in 1..=[`MAX_QUEUE_CAPACITY`] and, in real-time mode,
+    /// `frame_rate` be a positive finite rate whose period (1 / `frame_rate`) a [`Duration`] can
+    /// hold.
     ///
     /// # Errors
-    /// [`CoreError::MissingStage`] naming the key and the value.
+    /// [`CoreError::MissingStage`] naming the key, the value and the range.
     pub fn validate(&self) -> Result<()> {
-        if self.queue_capacity == 0 {
-            return Err(CoreError::MissingStage {
-                message: "[pipeline] queue_capacity must be at least 1".into(),
-            });
+        for (key, value) in [
+            ("queue_capacity", self.queue_capacity),
+            ("stage_queue_capacity", self.stage_queue_capacity),
+        ] {
+            if !(1..=MAX_QUEUE_CAPACITY).contains(&value) {
+                return Err(CoreError::MissingStage {
+                    message: format!(
+                        "[pipeline] {key} must be at least 1 and at most {MAX_QUEUE_CAPACITY} \
+                         frames, got {value}"
+                    ),
+                });
+            }
         }
         let rate = self.frame_rate;
         let representable =
@@ -426,6 +463,8 @@ impl Default for PipelineConfig {
             mode: Mode::Offline,
             queue_capacity: default_queue(),
             frame_rate: default_frame_rate(),
+            stages: StageLayout::default(),
+            stage_queue_capacity: default_stage_queue(),
         }
     }
 }

@@ -210,6 +210,17 @@ pub enum CoreError {
         /// What happened.
         reason: String,
     },
+    /// An embedding stage failed on one frame; the run stopped there.
+    #[error("{stage} of frame {frame}: {source}")]
+    AtFrame {
+        /// The stage: `propose`, `encode` or `integrate`.
+        stage: &'static str,
+        /// The frame's index in the source.
+        frame: usize,
+        /// The stage's error.
+        #[source]
+        source: Box<CoreError>,
+    },
 }
 
 fn unknown_message(kind: StageKind, name: &str, known: &[&str], feature: Option<&str>) -> String {
@@ -238,6 +249,14 @@ impl CoreError {
             kind,
             name: name.into(),
             source: Box::new(source),
+        }
+    }
+
+    /// The error itself, without the [`CoreError::AtFrame`] that says where in a run it happened.
+    pub fn root(&self) -> &Self {
+        match self {
+            Self::AtFrame { source, .. } => source.root(),
+            e => e,
         }
     }
 

@@ -1,11 +1,15 @@
-//! The pipeline: tracking and embedding in two threads joined by a bounded queue (paper, Fig. 2).
+//! The pipeline: tracking and embedding in threads joined by bounded queues (paper, Fig. 2).
 //!
 //! The tracking thread reads frames from the [`FrameSource`] and tracks every one of them, so the
-//! trajectory is complete. Tracked frames go through a bounded queue to the embedding stage
+//! trajectory is complete. Tracked frames go through a bounded queue to the embedding stages
 //! (region proposer → encoder → map), which may run slower:
 //! - [`Mode::Offline`]: the tracking thread waits for room in the queue; every frame is embedded.
 //! - [`Mode::RealTime`]: frames are released at the sensor rate; a frame that finds the queue full
-//!   (the embedding stage is busy) is not embedded and is counted as skipped, as in the paper.
+//!   (the first embedding stage is busy) is not embedded and is counted as skipped, as in the
+//!   paper.
+//!
+//! The embedding stages run each in a worker of their own by default, so the embedding rate is the
+//! slowest stage's rather than their sum (`[pipeline] stages`; `stages.rs` says how).
 //!
 //! Frames the tracker reports as lost are never integrated.
 //!
@@ -15,13 +19,13 @@
 use std::collections::BTreeMap;
 use std::sync::Arc;
 use std::sync::atomic::{AtomicBool, Ordering as AtomicOrdering};
-use std::sync::mpsc::{Receiver, SyncSender, TrySendError, sync_channel};
+use std::sync::mpsc::{SyncSender, TrySendError, sync_channel};
 use std::time::Instant;
 
 use serde::Serialize;
 
-use crate::config::{Config, Mode, PipelineConfig};
-use crate::error::{CoreError, Result};
+use crate::config::{Config, Mode, PipelineConfig, StageLayout};
+use crate::error::{CoreError, Result, message_chain};
 use crate::live::{LiveMap, MapRead, PoseStamp, RunState};
 use crate::mapfile::MapMetadata;
 use crate::registry::{BuildContext, Registry};
@@ -31,7 +35,12 @@ use crate::traits::frame_source::FrameSource;
 use crate::traits::observer::{NoObserver, RunObserver};
 use crate::traits::region_proposer::RegionProposer;
 use crate::traits::tracker::{Tracker, TrackingState};
-use crate::types::{Frame, Pose};
+use crate::types::Pose;
+
+mod stages;
+
+pub use stages::StageLoad;
+use stages::{Stage, StageFn, Work};
 
 /// The built stages of a run.
 pub struct Pipeline {
@@ -113,6 +122,11 @@ pub struct StageTiming {
 }
 
 impl StageTiming {
+    /// Milliseconds of all calls together.
+    pub fn total_ms(&self) -> f64 {
+        self.total_ms
+    }
+
     fn add(&mut self, since: Instant) {
         self.total_ms += since.elapsed().as_secs_f64() * 1e3;
         self.count += 1;
@@ -135,6 +149,11 @@ pub struct RunReport {
     pub frames_skipped: usize,
     /// Mean milliseconds per stage: `load`, `track`, `propose`, `encode`, `integrate`.
     pub stage_ms: BTreeMap<&'static str, StageTiming>,
+    /// The embedding stages' busy time and their workers' waits: the stage that sets the
+    /// embedding rate is the one that never waits.
+    pub stage_load: BTreeMap<&'static str, StageLoad>,
+    /// How the embedding stages shared threads.
+    pub stages: StageLayout,
     /// Wall time of the whole run in seconds.
     pub wall_seconds: f64,
     /// Whether the run ended early because its [`StopHandle`] was used.
@@ -204,6 +223,11 @@ pub struct RunStats {
     pub mode: Mode,
     /// Mean milliseconds per stage.
     pub mean_ms: BTreeMap<&'static str, f64>,
+    /// How the embedding stages shared threads (`overlapped` or `serial`).
+    pub stages: StageLayout,
+    /// Per embedding stage: calls, busy milliseconds (total and mean) and its worker's waits for
+    /// input and for room downstream.
+    pub stage_load: BTreeMap<&'static str, StageLoad>,
     /// Wall time of the run in seconds.
     pub wall_seconds: f64,
     /// Whether the run was stopped early ([`StopHandle`]).
@@ -242,6 +266,8 @@ impl RunReport {
                 .collect(),
             mode,
             mean_ms: self.stage_ms.iter().map(|(k, t)| (*k, t.mean_ms)).collect(),
+            stages: self.stages,
+            stage_load: self.stage_load.clone(),
             wall_seconds: self.wall_seconds,
             stopped: self.stopped,
             map: map.map(MapStats::of),
@@ -268,11 +294,6 @@ impl RunReport {
     }
 }
 
-struct Tracked {
-    frame: Frame,
-    pose: Pose,
-}
-
 #[derive(Default)]
 struct TrackingOutcome {
     trajectory: Vec<TrajectoryEntry>,
@@ -281,14 +302,6 @@ struct TrackingOutcome {
     skipped: usize,
     load: StageTiming,
     track: StageTiming,
-}
-
-#[derive(Default)]
-struct EmbeddingOutcome {
-    processed: usize,
-    propose: StageTiming,
-    encode: StageTiming,
-    integrate: StageTiming,
 }
 
 impl Pipeline {
@@ -452,7 +465,7 @@ impl Pipeline {
             (false, limit) => limit.map_or(source.len(), |n| n.min(source.len())),
         };
         let start = Instant::now();
-        let (sender, receiver) = sync_channel::<Tracked>(self.config.queue_capacity);
+        let (sender, receiver) = sync_channel::<Work>(self.config.queue_capacity);
         let config = self.config.clone();
         let integrate = self.live.has_map();
         let tracker = &mut self.tracker;
@@ -475,6 +488,12 @@ impl Pipeline {
             live,
             stop,
         };
+        let stages = if integrate {
+            embedding_stages(proposer, encoder, watchers)
+        } else {
+            Vec::new()
+        };
+        let groups = stages::layout(stages, config.stages);
         let (tracking, embedding) = std::thread::scope(|scope| {
             let tracking = scope.spawn(move || {
                 track_frames(
@@ -487,7 +506,8 @@ impl Pipeline {
                     watchers,
                 )
             });
-            let embedding = embed_frames(receiver, proposer, encoder, integrate, watchers);
+            let embedding =
+                stages::run_workers(scope, groups, receiver, self.config.stage_queue_capacity);
             let tracking = tracking.join().map_err(|_| CoreError::Worker {
                 reason: "the tracking thread panicked".into(),
             });
@@ -501,17 +521,21 @@ impl Pipeline {
         self.live.update_status(|status| {
             status.state = match &outcome {
                 Ok(_) => RunState::Finished,
-                Err(e) => RunState::Failed(e.to_string()),
+                Err(e) => RunState::Failed(message_chain(e)),
             }
         });
         let (embedding, tracking) = outcome?;
         let mut stage_ms = BTreeMap::new();
         stage_ms.insert("load", tracking.load);
         stage_ms.insert("track", tracking.track);
-        stage_ms.insert("propose", embedding.propose);
-        stage_ms.insert("encode", embedding.encode);
-        stage_ms.insert("integrate", embedding.integrate);
+        for (name, load) in &embedding {
+            stage_ms.insert(*name, load.busy);
+        }
         stage_ms.retain(|_, t| t.count > 0);
+        let processed = embedding
+            .iter()
+            .find(|(name, _)| *name == INTEGRATE)
+            .map_or(0, |(_, load)| load.busy.count);
         Ok(RunReport {
             frames_total: if live_source {
                 tracking.trajectory.len()
@@ -520,9 +544,11 @@ impl Pipeline {
             },
             frames_tracked: tracking.trajectory.len(),
             frames_lost: tracking.lost,
-            frames_processed: embedding.processed,
+            frames_processed: processed,
             frames_skipped: tracking.skipped,
             stage_ms,
+            stage_load: embedding.into_iter().collect(),
+            stages: self.config.stages,
             wall_seconds: start.elapsed().as_secs_f64(),
             stopped: tracking.stopped,
             trajectory: tracking.trajectory,
@@ -546,7 +572,7 @@ fn track_frames(
     total: usize,
     config: &PipelineConfig,
     integrate: bool,
-    sender: SyncSender<Tracked>,
+    sender: SyncSender<Work>,
     Watchers {
         progress,
         observer,
@@ -613,9 +639,11 @@ fn track_frames(
         if !integrate {
             continue;
         }
-        let item = Tracked {
+        let item = Work {
             frame,
             pose: tracked.pose,
+            regions: Vec::new(),
+            embeddings: None,
         };
         match config.mode {
             Mode::Offline => {
@@ -639,73 +667,80 @@ fn track_frames(
     Ok(out)
 }
 
-fn embed_frames(
-    receiver: Receiver<Tracked>,
-    proposer: Option<&dyn RegionProposer>,
-    encoder: Option<&dyn Encoder>,
-    integrate: bool,
+/// The stage that integrates into the map: the one whose calls count the processed frames.
+const INTEGRATE: &str = "integrate";
+
+/// The embedding stages of a pipeline with a map, in order: propose (with a proposer), encode (with
+/// an encoder), integrate.
+fn embedding_stages<'a>(
+    proposer: Option<&'a dyn RegionProposer>,
+    encoder: Option<&'a dyn Encoder>,
     Watchers {
         progress,
         observer,
         live,
         ..
-    }: Watchers<'_>,
-) -> Result<EmbeddingOutcome> {
-    let mut out = EmbeddingOutcome::default();
-    // Dropping the receiver on error (by returning) unblocks and stops the tracking thread.
-    for Tracked { frame, pose } in receiver {
-        let regions = match proposer {
-            Some(p) => {
-                let t = Instant::now();
-                let regions = p.propose(&frame.colour)?;
-                out.propose.add(t);
-                regions
-            }
-            None => Vec::new(),
-        };
-        let embeddings = match encoder {
-            Some(e) => {
-                let t = Instant::now();
-                if e.needs_labels() && frame.labels.is_none() {
+    }: Watchers<'a>,
+) -> Vec<Stage<'a>> {
+    let mut stages = Vec::with_capacity(3);
+    if let Some(proposer) = proposer {
+        stages.push(Stage {
+            name: "propose",
+            run: Box::new(move |work: &mut Work| {
+                work.regions = proposer.propose(&work.frame.colour)?;
+                Ok(())
+            }) as StageFn<'a>,
+        });
+    }
+    if let Some(encoder) = encoder {
+        stages.push(Stage {
+            name: "encode",
+            run: Box::new(move |work: &mut Work| {
+                if encoder.needs_labels() && work.frame.labels.is_none() {
                     return Err(CoreError::MissingLabels {
-                        encoder: e.name().to_owned(),
-                        frame: frame.index,
+                        encoder: encoder.name().to_owned(),
+                        frame: work.frame.index,
                     });
                 }
-                let embeddings = e.encode_frame(&frame, &regions)?;
-                out.encode.add(t);
-                Some(embeddings)
-            }
-            None => None,
-        };
-        if integrate {
-            let t = Instant::now();
+                work.embeddings = Some(encoder.encode_frame(&work.frame, &work.regions)?);
+                Ok(())
+            }),
+        });
+    }
+    stages.push(Stage {
+        name: INTEGRATE,
+        run: Box::new(move |work: &mut Work| {
+            let Work {
+                frame,
+                pose,
+                regions,
+                embeddings,
+            } = work;
             // The write lock covers exactly one integration: readers see whole frames only.
             let map_len = live.write(|state| -> Result<usize> {
                 let _: IntegrationStats = state.map.integrate(&Observation {
-                    frame: &frame,
-                    pose: &pose,
+                    frame,
+                    pose,
                     embeddings: embeddings.as_ref(),
                 })?;
                 state.frames_integrated += 1;
                 state.last_frame = Some(frame.index);
                 Ok(state.map.len())
             })??;
-            out.integrate.add(t);
-            out.processed += 1;
             live.update_status(|status| {
                 status.frames_integrated += 1;
                 status.map_len = map_len;
             });
-            // Only this thread writes, so the map read now is the one just integrated.
+            // Only this stage writes, so the map read now is the one just integrated.
             if let Some(map) = live.map_read() {
-                observer.frame_integrated(&frame, &pose, &regions, &*map);
+                observer.frame_integrated(frame, pose, regions, &*map);
             }
             progress(Progress::Integrated {
                 index: frame.index,
                 map_len,
             });
-        }
-    }
-    Ok(out)
+            Ok(())
+        }),
+    });
+    stages
 }

@@ -31,7 +31,8 @@ pub struct StreamSpec {
     /// Whether every frame carries a pose (from the robot's odometry, tf or the caller); a
     /// ground-truth tracker needs it, an estimating tracker keeps such poses as the reference.
     pub has_poses: bool,
-    /// Frames that may wait between the senders and the tracking thread (at least 1).
+    /// Frames that may wait between the senders and the tracking thread (1 to
+    /// [`crate::config::MAX_QUEUE_CAPACITY`]).
     pub capacity: usize,
 }
 
@@ -40,14 +41,18 @@ pub struct StreamSpec {
 ///
 /// # Errors
 /// [`CoreError::InvalidIntrinsics`] for an impossible camera, [`CoreError::InvalidParams`] for a
-/// zero capacity.
+/// capacity outside 1 to [`crate::config::MAX_QUEUE_CAPACITY`] (its slots are allocated up front).
 pub fn frame_stream(spec: StreamSpec) -> Result<(FrameSender, FrameStream)> {
     spec.intrinsics.validate()?;
-    if spec.capacity == 0 {
+    let max = crate::config::MAX_QUEUE_CAPACITY;
+    if !(1..=max).contains(&spec.capacity) {
         return Err(CoreError::InvalidParams {
             section: "stream".into(),
             name: spec.description.clone(),
-            message: "capacity must be at least 1 frame".into(),
+            message: format!(
+                "capacity must be at least 1 frame and at most {max}, got {}",
+                spec.capacity
+            ),
         });
     }
     let (sender, receiver) = sync_channel(spec.capacity);

@@ -251,6 +251,7 @@ fn real_time_mode_skips_frames_while_the_encoder_is_busy() {
         mode: Mode::RealTime,
         queue_capacity: 1,
         frame_rate: 200.0,
+        ..PipelineConfig::default()
     };
     let mut p = Pipeline::new(
         still(),
@@ -340,9 +341,17 @@ fn an_encoder_error_stops_the_run_and_is_reported() {
         .unwrap_err();
     assert_eq!(
         err.to_string(),
-        "invalid pixel embeddings: fake encoder failure"
+        "encode of frame 3: invalid pixel embeddings: fake encoder failure"
     );
+    assert!(matches!(err.root(), CoreError::InvalidEmbeddings { .. }));
+    // Every frame encoded before the failure was integrated, and the map stays queryable.
     assert_eq!(p.map().unwrap().len(), 3);
+    let status = p.live().status();
+    assert_eq!(status.frames_integrated, 3);
+    assert!(
+        matches!(&status.state, vlem_core::live::RunState::Failed(m) if m.contains("encode of frame 3")),
+        "{status:?}"
+    );
 }
 
 #[test]
@@ -552,6 +561,7 @@ fn a_live_stream_is_read_in_order_until_every_sender_finishes() {
             mode: Mode::RealTime,
             queue_capacity: 8,
             frame_rate: 1.0,
+            ..PipelineConfig::default()
         },
     )
     .unwrap();
@@ -661,4 +671,200 @@ fn a_run_on_a_stream_ends_when_the_encoder_fails_and_senders_hear_of_it() {
             "{refused:?}"
         );
     });
+}
+
+/// A proposer that fails on its `fail_at_call`-th call.
+struct FailingProposer {
+    fail_at_call: usize,
+    calls: Mutex<usize>,
+}
+
+impl vlem_core::RegionProposer for FailingProposer {
+    fn name(&self) -> &'static str {
+        "failing"
+    }
+    fn propose(&self, image: &RgbImage) -> vlem_core::Result<Vec<Region>> {
+        let mut calls = self.calls.lock().unwrap();
+        if *calls == self.fail_at_call {
+            return Err(CoreError::Worker {
+                reason: "proposer failure".into(),
+            });
+        }
+        *calls += 1;
+        Corner.propose(image)
+    }
+}
+
+/// A map that refuses frame `fail_at`.
+struct FailingMap {
+    inner: Recorder,
+    fail_at: usize,
+}
+
+impl EmbeddingMap for FailingMap {
+    fn name(&self) -> &'static str {
+        "failing"
+    }
+    fn dim(&self) -> usize {
+        self.inner.dim()
+    }
+    fn integrate(&mut self, obs: &Observation<'_>) -> vlem_core::Result<IntegrationStats> {
+        if obs.frame.index == self.fail_at {
+            return Err(CoreError::Worker {
+                reason: "map failure".into(),
+            });
+        }
+        self.inner.integrate(obs)
+    }
+    fn len(&self) -> usize {
+        self.inner.len()
+    }
+    fn memory_bytes(&self) -> usize {
+        0
+    }
+    fn similarity(&self, q: &[f32], out: &mut Vec<f32>) -> vlem_core::Result<()> {
+        self.inner.similarity(q, out)
+    }
+    fn snapshot(&self) -> MapSnapshot {
+        MapSnapshot::default()
+    }
+}
+
+fn regions_pipeline(
+    proposer: Box<dyn vlem_core::RegionProposer>,
+    map: Box<dyn EmbeddingMap>,
+    stages: vlem_core::config::StageLayout,
+) -> Pipeline {
+    let encoder = Fake {
+        needs_regions: true,
+        ..Fake::new()
+    };
+    Pipeline::new(
+        still(),
+        Some(proposer),
+        Some(Box::new(encoder)),
+        Some(map),
+        PipelineConfig {
+            stages,
+            ..PipelineConfig::default()
+        },
+    )
+    .unwrap()
+}
+
+#[test]
+fn every_embedding_stage_reports_its_load_and_the_layout_is_in_the_stats() {
+    use vlem_core::config::StageLayout;
+    for layout in [StageLayout::Overlapped, StageLayout::Serial] {
+        let mut p = regions_pipeline(Box::new(Corner), recorder(2), layout);
+        let report = p
+            .run(
+                &mut Planes {
+                    frames: 9,
+                    poses: false,
+                },
+                None,
+                &no_progress,
+            )
+            .unwrap();
+        assert_eq!(report.frames_processed, 9);
+        assert_eq!(report.stages, layout);
+        let names: Vec<_> = report.stage_load.keys().copied().collect();
+        assert_eq!(names, ["encode", "integrate", "propose"], "{layout:?}");
+        for (name, load) in &report.stage_load {
+            assert_eq!(load.busy.count, 9, "{name}");
+            assert!(load.wait_input_ms >= 0.0 && load.wait_output_ms >= 0.0);
+            assert_eq!(report.stage_ms[name], load.busy);
+        }
+        let stats = serde_json::to_value(report.stats(Mode::Offline, None, None)).unwrap();
+        let expected = match layout {
+            StageLayout::Overlapped => "overlapped",
+            StageLayout::Serial => "serial",
+        };
+        assert_eq!(stats["stages"], expected);
+        assert_eq!(stats["stage_load"]["encode"]["busy"]["count"], 9);
+        assert!(stats["stage_load"]["propose"]["wait_output_ms"].is_number());
+    }
+}
+
+#[test]
+fn a_failing_proposer_or_map_names_its_stage_and_frame_and_keeps_the_map_so_far() {
+    use vlem_core::config::StageLayout;
+    for layout in [StageLayout::Overlapped, StageLayout::Serial] {
+        let proposer = FailingProposer {
+            fail_at_call: 4,
+            calls: Mutex::new(0),
+        };
+        let mut p = regions_pipeline(Box::new(proposer), recorder(2), layout);
+        let err = p
+            .run(
+                &mut Planes {
+                    frames: 100,
+                    poses: false,
+                },
+                None,
+                &no_progress,
+            )
+            .unwrap_err();
+        assert_eq!(
+            err.to_string(),
+            "propose of frame 4: pipeline worker failed: proposer failure"
+        );
+        assert_eq!(p.map().unwrap().len(), 4, "{layout:?}");
+
+        let map = FailingMap {
+            inner: Recorder {
+                dim: 2,
+                ..Recorder::default()
+            },
+            fail_at: 6,
+        };
+        let mut p = regions_pipeline(Box::new(Corner), Box::new(map), layout);
+        let err = p
+            .run(
+                &mut Planes {
+                    frames: 100,
+                    poses: false,
+                },
+                None,
+                &no_progress,
+            )
+            .unwrap_err();
+        assert_eq!(
+            err.to_string(),
+            "integrate of frame 6: pipeline worker failed: map failure"
+        );
+        assert_eq!(p.map().unwrap().len(), 6, "{layout:?}");
+        assert_eq!(p.live().status().frames_integrated, 6);
+    }
+}
+
+#[test]
+fn queue_capacities_are_range_checked() {
+    for (capacity, stage_capacity) in [(0, 1), (1, 0), (usize::MAX, 1), (1, 100_000_000)] {
+        let err = Pipeline::new(
+            still(),
+            None,
+            Some(Box::new(Fake::new())),
+            Some(recorder(2)),
+            PipelineConfig {
+                queue_capacity: capacity,
+                stage_queue_capacity: stage_capacity,
+                ..PipelineConfig::default()
+            },
+        )
+        .err()
+        .unwrap()
+        .to_string();
+        assert!(err.contains("at least 1 and at most 1024"), "{err}");
+    }
+    // A live stream's queue is allocated up front too (Python's `Pipeline.start(capacity=10**9)`).
+    for capacity in [0, 1_000_000_000] {
+        let err = vlem_core::stream::frame_stream(stream_spec(false, capacity))
+            .err()
+            .unwrap()
+            .to_string();
+        assert!(err.contains("at most 1024"), "{err}");
+    }
+    assert!(vlem_core::stream::frame_stream(stream_spec(false, 1024)).is_ok());
 }

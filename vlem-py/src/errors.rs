@@ -64,7 +64,8 @@ pyo3::create_exception!(
 
 /// Which exception class a core error is.
 fn class_of(error: &CoreError) -> fn(String) -> PyErr {
-    match error {
+    // Where in a run it happened does not change what kind of error it is.
+    match error.root() {
         CoreError::UnknownImplementation { .. }
         | CoreError::DuplicateImplementation { .. }
         | CoreError::InvalidParams { .. }
