@@ -5,6 +5,11 @@
 //! result files (statistics, evaluation reports, study tables) that a reader may open while a run
 //! is still going, or after it was killed. Each goes through a temporary file in the same folder,
 //! a sync and a rename (the map file too), so a reader sees the old file or the new one.
+//!
+//! Two rules keep that safe when a run is interrupted or a path is wrong: a save replaces only a
+//! regular file (never a device, a pipe or a folder, whatever the path names; through a symlink it
+//! replaces the file the link points to), and each save first removes the temporary files that
+//! killed saves of the same file left behind.
 
 use std::fs::{File, OpenOptions};
 use std::io::Write;
@@ -37,6 +42,8 @@ pub(crate) fn replace_file<T>(
     fallback_name: &str,
     write: impl FnOnce(&Path, File) -> Result<T>,
 ) -> Result<T> {
+    let target = replaceable_target(path)?;
+    let path = target.as_path();
     let dir = match path.parent() {
         Some(p) if !p.as_os_str().is_empty() => p.to_path_buf(),
         _ => PathBuf::from("."),
@@ -45,6 +52,7 @@ pub(crate) fn replace_file<T>(
         || fallback_name.to_owned(),
         |n| n.to_string_lossy().into_owned(),
     );
+    remove_stale_temp_files(&dir, &file_name);
     let (tmp, file) = create_temp_file(&dir, &file_name)?;
     let result = write(&tmp, file).and_then(|out| {
         std::fs::rename(&tmp, path).map_err(|e| CoreError::io(path, e))?;
@@ -58,6 +66,77 @@ pub(crate) fn replace_file<T>(
         let _ = std::fs::remove_file(&tmp);
     }
     result
+}
+
+/// The file a save to `path` replaces: `path` itself, or for a symlink the file it points to; an
+/// error naming `path` when that is anything but a regular file or nothing yet (a folder, a device
+/// such as `/dev/full`, a pipe, a socket, a symlink to nowhere).
+fn replaceable_target(path: &Path) -> Result<PathBuf> {
+    let refuse = |what: &str| {
+        CoreError::io(
+            path,
+            std::io::Error::new(
+                std::io::ErrorKind::InvalidInput,
+                format!("{what}: vlem writes only regular files and would not replace it"),
+            ),
+        )
+    };
+    let target = match std::fs::symlink_metadata(path) {
+        Err(_) => return Ok(path.to_path_buf()),
+        Ok(meta) if meta.file_type().is_symlink() => {
+            std::fs::canonicalize(path).map_err(|_| refuse("a symbolic link to nothing"))?
+        }
+        Ok(_) => path.to_path_buf(),
+    };
+    match std::fs::metadata(&target) {
+        Err(_) => Ok(target),
+        Ok(meta) if meta.is_file() => Ok(target),
+        Ok(meta) if meta.is_dir() => Err(refuse("a folder")),
+        Ok(_) => Err(refuse("not a regular file (a device, pipe or socket)")),
+    }
+}
+
+/// How old a dead process's temporary file must be before a save removes it: a live save writes
+/// into its file all the time, so only a temporary nobody touched for this long is left over.
+const STALE_AFTER: std::time::Duration = std::time::Duration::from_secs(60);
+
+/// Removes `.<file_name>.tmp-<pid>-…` files in `dir` left by saves that were killed: those of
+/// a process that no longer runs (Linux: no `/proc/<pid>`) and untouched for [`STALE_AFTER`].
+/// This process's own temporaries are in-flight saves of other threads and are kept. Best effort:
+/// a file that cannot be removed stays.
+fn remove_stale_temp_files(dir: &Path, file_name: &str) {
+    if !Path::new("/proc/self").exists() {
+        return; // Without /proc a dead process cannot be told from a live one.
+    }
+    let prefix = format!(".{file_name}.tmp-");
+    let own = std::process::id();
+    let Ok(entries) = std::fs::read_dir(dir) else {
+        return;
+    };
+    for entry in entries.flatten() {
+        let name = entry.file_name();
+        let Some(pid) = name
+            .to_str()
+            .and_then(|n| n.strip_prefix(&prefix))
+            .and_then(|rest| rest.split('-').next())
+            .and_then(|pid| pid.parse::<u32>().ok())
+        else {
+            continue;
+        };
+        if pid == own || Path::new(&format!("/proc/{pid}")).exists() {
+            continue;
+        }
+        let untouched = entry
+            .metadata()
+            .ok()
+            .filter(std::fs::Metadata::is_file)
+            .and_then(|m| m.modified().ok())
+            .and_then(|t| t.elapsed().ok())
+            .is_some_and(|age| age >= STALE_AFTER);
+        if untouched {
+            let _ = std::fs::remove_file(entry.path());
+        }
+    }
 }
 
 /// Saves started by this process (part of the temporary file names).
@@ -124,6 +203,77 @@ mod tests {
         assert_eq!(std::fs::read(&path).unwrap(), b"new");
         let names: Vec<_> = std::fs::read_dir(dir.path()).unwrap().collect();
         assert_eq!(names.len(), 1, "only the file itself is left");
+    }
+
+    #[test]
+    fn only_regular_files_are_replaced_and_symlinks_write_through() {
+        let dir = tempfile::tempdir().unwrap();
+        let folder = dir.path().join("folder");
+        std::fs::create_dir(&folder).unwrap();
+        let err = write_atomically(&folder, b"x").unwrap_err().to_string();
+        assert!(
+            err.contains("folder") && err.contains("regular files"),
+            "{err}"
+        );
+        assert!(folder.is_dir());
+        if Path::new("/dev/null").exists() {
+            let err = write_atomically(Path::new("/dev/null"), b"x")
+                .unwrap_err()
+                .to_string();
+            assert!(err.starts_with("/dev/null: not a regular file"), "{err}");
+        }
+        #[cfg(unix)]
+        {
+            let target = dir.path().join("target.json");
+            std::fs::write(&target, b"old").unwrap();
+            let link = dir.path().join("link.json");
+            std::os::unix::fs::symlink(&target, &link).unwrap();
+            write_atomically(&link, b"new").unwrap();
+            assert!(link.symlink_metadata().unwrap().file_type().is_symlink());
+            assert_eq!(std::fs::read(&target).unwrap(), b"new");
+            let dangling = dir.path().join("dangling.json");
+            std::os::unix::fs::symlink(dir.path().join("nowhere"), &dangling).unwrap();
+            let err = write_atomically(&dangling, b"x").unwrap_err().to_string();
+            assert!(err.contains("symbolic link to nothing"), "{err}");
+        }
+    }
+
+    #[test]
+    fn a_save_removes_the_old_temporaries_of_killed_saves_only() {
+        let dir = tempfile::tempdir().unwrap();
+        let old = std::time::SystemTime::now() - 2 * STALE_AFTER;
+        let temp = |name: &str, modified: Option<std::time::SystemTime>| {
+            let path = dir.path().join(name);
+            let file = File::create(&path).unwrap();
+            if let Some(t) = modified {
+                file.set_modified(t).unwrap();
+            }
+            path
+        };
+        // pid 0 is never a user process: a killed save's leftover.
+        let dead_old = temp(".map.vlem.tmp-0-3-abc", Some(old));
+        let dead_fresh = temp(".map.vlem.tmp-0-4-abd", None);
+        let ours = temp(
+            &format!(".map.vlem.tmp-{}-9-abe", std::process::id()),
+            Some(old),
+        );
+        let other_file = temp(".stats.json.tmp-0-1-abf", Some(old));
+        write_atomically(&dir.path().join("map.vlem"), b"map").unwrap();
+        if Path::new("/proc/self").exists() {
+            assert!(
+                !dead_old.exists(),
+                "a dead process's old temporary is removed"
+            );
+        }
+        assert!(
+            dead_fresh.exists(),
+            "one touched just now may be a save in flight"
+        );
+        assert!(ours.exists(), "this process's own saves are in flight");
+        assert!(
+            other_file.exists(),
+            "another file's temporaries are its saves' business"
+        );
     }
 
     #[test]
