@@ -74,6 +74,10 @@ fn main() -> std::process::ExitCode {
         Command::Ros2(args) => cli::ros2::execute(&args),
     };
     match outcome {
+        // A run ended by Ctrl-C / SIGTERM wrote its outputs; its status says it was interrupted.
+        Ok(()) if cli::interrupt::run_cut_short() => {
+            std::process::ExitCode::from(cli::interrupt::EXIT_INTERRUPTED)
+        }
         Ok(()) => std::process::ExitCode::SUCCESS,
         Err(e) => {
             eprintln!("error: {}", cli::one_line(&e));

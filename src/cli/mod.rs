@@ -2,6 +2,7 @@
 //! formatting) live here.
 
 pub mod eval;
+pub mod interrupt;
 pub mod plugins;
 pub mod query;
 pub mod ros2;

@@ -193,11 +193,30 @@ fn run(mut config: Config, ctx: BuildContext, out: &Path, options: &RunOptions<'
         );
     }
 
-    let report = track_and_map(&mut pipeline, source.as_mut(), recording.as_ref())?;
+    super::interrupt::install(pipeline.stop_handle())?;
+    let report = match track_and_map(&mut pipeline, source.as_mut(), recording.as_ref()) {
+        Ok(report) => report,
+        Err(e) => return Err(save_after_failure(&pipeline, out, e)),
+    };
     if let Some(failure) = recording.as_ref().and_then(RunRecording::failure) {
         eprintln!("warning: the rerun recording stopped early: {failure}");
     }
     write_outputs(&config, &pipeline, &report, out)?;
+    if report.stopped {
+        super::interrupt::note_run_cut_short();
+        // Interrupted: the outputs are written; the user asked to end, so no queries and no
+        // colour model, and no serving after.
+        eprintln!(
+            "vlem: stopped after {} of {} frames; the map, trajectory and stats so far are in {}",
+            report.frames_tracked,
+            report.frames_total,
+            out.display()
+        );
+        if let Some(server) = server {
+            server.shutdown();
+        }
+        return Ok(());
+    }
     if let (Some(recorder), Some(map)) = (&recorder, pipeline.map()) {
         recorder.log_map(&map.coloured_points(), report.frames_total)?;
     }
@@ -250,7 +269,8 @@ fn run(mut config: Config, ctx: BuildContext, out: &Path, options: &RunOptions<'
                 "vlem: the run has finished; still serving on http://{} until interrupted (Ctrl-C)",
                 server.address()
             );
-            server.wait();
+            super::interrupt::wait();
+            server.shutdown();
         } else {
             server.shutdown();
         }
@@ -301,14 +321,73 @@ fn track_and_map(
     Ok(report)
 }
 
+/// The files a run writes into its output folder; [`clear_earlier_outputs`] removes an earlier
+/// run's before a run writes its own, so the folder never mixes two runs.
+const RUN_OUTPUTS: [&str; 5] = [
+    "stats.json",
+    "trajectory.tum",
+    "reference.tum",
+    "map.vlem",
+    "colour-model.ply",
+];
+
+/// Removes an earlier run's outputs (and its `query-*.ply` heatmaps) from `out`. `stats.json`
+/// goes first and is written last, so a folder with one holds one complete run.
+fn clear_earlier_outputs(out: &Path) -> Result<()> {
+    let remove = |path: &Path| match std::fs::remove_file(path) {
+        Err(e) if e.kind() != std::io::ErrorKind::NotFound => {
+            Err(e).with_context(|| format!("cannot remove the earlier run's {}", path.display()))
+        }
+        _ => Ok(()),
+    };
+    for name in RUN_OUTPUTS {
+        remove(&out.join(name))?;
+    }
+    if let Ok(entries) = std::fs::read_dir(out) {
+        for entry in entries.flatten() {
+            let name = entry.file_name();
+            let name = name.to_string_lossy();
+            if name.starts_with("query-") && name.ends_with(".ply") {
+                remove(&entry.path())?;
+            }
+        }
+    }
+    Ok(())
+}
+
+/// After a failed run: the map so far saved as OUT/map.vlem (nothing integrated is lost), said on
+/// stderr before the error itself, which is returned unchanged.
+fn save_after_failure(pipeline: &Pipeline, out: &Path, error: anyhow::Error) -> anyhow::Error {
+    let live = pipeline.live();
+    let frames = live.status().frames_integrated;
+    if !live.has_map() || frames == 0 {
+        return error;
+    }
+    let path = out.join("map.vlem");
+    match clear_earlier_outputs(out).and_then(|()| Ok(live.save(&path)?)) {
+        Ok(saved) => eprintln!(
+            "vlem: the run failed after {frames} integrated frames; the map so far ({} points) is \
+             saved in {}",
+            saved.points,
+            path.display()
+        ),
+        Err(e) => eprintln!(
+            "vlem: the run failed, and saving the map so far failed too: {}",
+            super::one_line(&e)
+        ),
+    }
+    error
+}
+
 /// OUT/trajectory.tum, OUT/reference.tum (when the tracker estimated poses on a dataset that has
-/// them), OUT/map.vlem and OUT/stats.json, and the summary lines.
+/// them), OUT/map.vlem and OUT/stats.json (last), and the summary lines.
 fn write_outputs(
     config: &Config,
     pipeline: &Pipeline,
     report: &RunReport,
     out: &Path,
 ) -> Result<()> {
+    clear_earlier_outputs(out)?;
     vlem_datasets::trajectory::write_tum(&out.join("trajectory.tum"), &report.poses())?;
     // The dataset's own poses beside the estimate, so `vlem eval trajectory` needs nothing else.
     if let Some(reference) = report.reference_poses()
@@ -361,6 +440,35 @@ fn export_colour_model(
     Ok(())
 }
 
+/// Which embedding stage set the rate: each stage's busy share of the run and the busiest one.
+fn stage_load_line(report: &RunReport) -> Option<String> {
+    let wall_ms = report.wall_seconds * 1e3;
+    if report.stage_load.is_empty() || wall_ms <= 0.0 || report.frames_processed == 0 {
+        return None;
+    }
+    // Pipeline order, not the map's alphabetical one.
+    let order = ["propose", "encode", "integrate"];
+    let mut loads: Vec<_> = report.stage_load.iter().collect();
+    loads.sort_by_key(|(name, _)| order.iter().position(|o| o == *name));
+    let shares: Vec<String> = loads
+        .iter()
+        .map(|(name, load)| format!("{name} {:.0}%", 100.0 * load.busy.total_ms() / wall_ms))
+        .collect();
+    let busiest = loads
+        .iter()
+        .max_by(|a, b| a.1.busy.total_ms().total_cmp(&b.1.busy.total_ms()))
+        .map(|(name, _)| **name)?;
+    Some(format!(
+        "embedding stages ({}): busy {}; {:.2} frames/s embedded, set by `{busiest}`",
+        match report.stages {
+            vlem_core::config::StageLayout::Overlapped => "overlapped",
+            vlem_core::config::StageLayout::Serial => "serial",
+        },
+        shares.join(", "),
+        report.frames_processed as f64 / report.wall_seconds
+    ))
+}
+
 fn print_summary(report: &RunReport, map: Option<&dyn EmbeddingMap>, out: &Path) {
     println!(
         "{} frames: {} tracked, {} integrated, {} skipped, {} lost in {:.1} s",
@@ -377,6 +485,9 @@ fn print_summary(report: &RunReport, map: Option<&dyn EmbeddingMap>, out: &Path)
         .map(|(stage, t)| format!("{stage} {:.1}", t.mean_ms))
         .collect();
     println!("mean ms per frame: {}", stages.join(", "));
+    if let Some(line) = stage_load_line(report) {
+        println!("{line}");
+    }
     if let Some(map) = map {
         println!(
             "map `{}`: {} points, {}-d embeddings, {:.1} MB",

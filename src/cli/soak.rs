@@ -2,9 +2,10 @@
 //!
 //! The pipeline of an ordinary config (tracker, encoder, map) maps N generated frames (default
 //! 10,000) while the map is held to its budget. Every K frames the run samples the process's
-//! resident memory (Linux `VmRSS`) and the map's size. After a warm-up — the later of the first
-//! `warmup` fraction of the frames and the frame at which the map is first seen enforcing its
-//! budget — resident memory must stay within ±`tolerance` of its level at the end of the warm-up,
+//! resident memory (Linux `VmRSS`) and the map's size. After a warm-up — the latest of the first
+//! `warmup` fraction of the frames, the frame at which the map is first seen enforcing its budget,
+//! and the last sample at which the map's storage grew by more than `tolerance` (a buffer that
+//! doubles once when a merge pass first needs room) — resident memory must stay within ±`tolerance` of its level at the end of the warm-up,
 //! and the map must never hold more elements than its budget. The run writes `OUT/soak.json` (the
 //! summary and the verdict) and `OUT/soak-samples.csv` (frame, rss bytes, map elements, map
 //! bytes), prints a summary, and fails (nonzero exit) when a bound is broken.
@@ -392,9 +393,11 @@ pub fn execute(args: &SoakArgs) -> Result<()> {
 
 /// Judges a series of samples (the first at frame 0, the last at `total`).
 ///
-/// The warm-up ends at the later of `warmup · total` and one frame past `full_frame` (the frame at
-/// which the map was first seen enforcing its budget); the first sample at or after that frame is
-/// the reference. Fails when the map never reached its budget, when it ever held more than
+/// The warm-up ends at the latest of `warmup · total`, one frame past `full_frame` (the frame at
+/// which the map was first seen enforcing its budget) and the last sample at which the map's
+/// storage (`map_bytes`) grew by more than `tolerance` over the sample before; the first sample at
+/// or after that frame is the reference. A map whose storage keeps growing in such steps to the
+/// end so leaves too few samples after the warm-up, and fails. Fails when the map never reached its budget, when it ever held more than
 /// `budget` elements (`max_elements`), when fewer than two samples follow the reference, or when
 /// any sample from the reference on has resident memory outside ±`tolerance` of the reference's.
 fn judge(
@@ -431,13 +434,21 @@ fn judge(
             failures,
         };
     };
-    let warmup_end = by_fraction.max(full + 1);
+    let storage_settled = samples
+        .windows(2)
+        .filter(|w| w[1].map_bytes as f64 > w[0].map_bytes as f64 * (1.0 + tolerance))
+        .map(|w| w[1].frame)
+        .max()
+        .unwrap_or(0);
+    let warmup_end = by_fraction.max(full + 1).max(storage_settled);
     let after: Vec<&Sample> = samples.iter().filter(|s| s.frame >= warmup_end).collect();
     if after.len() < 2 {
         failures.push(format!(
             "the warm-up lasted until frame {warmup_end} of {total} (the map reached its budget \
-             at frame {full}), leaving too few samples after it: map more frames or lower the \
-             budget"
+             at frame {full}; its storage last grew by more than {:.0}% at frame \
+             {storage_settled}), leaving too few samples after it: map more frames or lower the \
+             budget",
+            tolerance * 100.0
         ));
         return Verdict {
             reference: after.first().map(|s| **s),
@@ -507,9 +518,36 @@ mod tests {
         );
         let v = judge(&s, 100, 0.1, 0.1, 100, 100, Some(25));
         assert!(v.failures.is_empty(), "{:?}", v.failures);
-        assert_eq!(v.warmup_end, 26);
+        // The storage grew by 25 % at frame 30, the last sample still filling the map.
+        assert_eq!(v.warmup_end, 30);
         assert_eq!(v.reference.unwrap().frame, 30);
         assert_eq!(v.rss_range, Some((98_000_000, 104_000_000)));
+    }
+
+    #[test]
+    fn one_step_of_the_maps_storage_after_the_budget_ends_the_warm_up_there() {
+        // The budget is enforced from frame 25; the storage doubles once at frame 60 (a buffer
+        // growing when a merge pass first needs room), and resident memory with it.
+        let mut s = series(
+            &[50, 60, 80, 100, 101, 100, 140, 141, 139, 140, 140],
+            &[0, 40, 80, 100, 100, 99, 100, 98, 100, 100, 100],
+        );
+        s[6..].iter_mut().for_each(|x| x.map_bytes *= 2);
+        let v = judge(&s, 100, 0.1, 0.1, 100, 100, Some(25));
+        assert!(v.failures.is_empty(), "{:?}", v.failures);
+        assert_eq!(v.warmup_end, 60);
+        assert_eq!(v.reference.unwrap().frame, 60);
+        // Storage that keeps growing leaves no warm-up end to judge from.
+        let mut s = series(&[50; 11], &[100; 11]);
+        for (i, x) in s.iter_mut().enumerate() {
+            x.map_bytes = 1000 << i;
+        }
+        let v = judge(&s, 100, 0.1, 0.1, 100, 100, Some(0));
+        assert!(
+            v.failures[0].contains("its storage last grew by more than 10% at frame 100"),
+            "{:?}",
+            v.failures
+        );
     }
 
     #[test]
