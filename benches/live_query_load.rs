@@ -2,13 +2,14 @@
 //!
 //! Maps the shared 150-frame ICL living-room sequence (`../shared/data/icl-livingroom1`, or the
 //! folder given as the first argument) offline with the demo's stages (ground-truth poses,
-//! colour-names, point-cloud map), once with no queries and once with a thread querying the live
-//! map at a given rate (default 10 Hz, the second argument) for two texts with the `threshold`
-//! segmenter. Prints one JSON line per run: frames per second, the mean integration time (which
-//! includes waiting for the map's write lock), and the query latencies.
+//! colour-names, point-cloud map), once with no queries and once with CLIENTS threads (default 1)
+//! each querying the live map at a given rate (default 10 Hz) for TEXTS texts (default 2; colour
+//! words, which the demo's encoder embeds) with the `threshold` segmenter. Prints one JSON line per
+//! run: frames per second, the mean integration time (which includes waiting for the map's write
+//! lock), and the query latencies.
 //!
 //! ```sh
-//! cargo bench --bench live_query_load [-- DATASET [HZ]]
+//! cargo bench --bench live_query_load [-- DATASET [HZ [CLIENTS [TEXTS]]]]
 //! ```
 #![allow(clippy::unwrap_used, clippy::expect_used, reason = "a benchmark")]
 
@@ -36,47 +37,80 @@ fn main() {
     let hz: f64 = args
         .get(1)
         .map_or(10.0, |a| a.parse().expect("a rate in Hz"));
+    let clients: usize = args
+        .get(2)
+        .map_or(1, |a| a.parse().expect("a number of clients"));
+    let texts: usize = args
+        .get(3)
+        .map_or(2, |a| a.parse().expect("a number of texts per query"));
+    let load = Load { hz, clients, texts };
     if !dataset.is_dir() {
         eprintln!("live_query_load: no dataset at {}", dataset.display());
         std::process::exit(2);
     }
     // Warm the page cache and the allocator once, then measure both runs.
     run(&repo, &dataset, None);
-    for load in [None, Some(hz)] {
+    for load in [None, Some(load)] {
         run(&repo, &dataset, load);
     }
 }
 
-fn run(repo: &std::path::Path, dataset: &std::path::Path, hz: Option<f64>) {
+/// The query load: `clients` threads, each asking `texts` texts at up to `hz`.
+#[derive(Clone, Copy)]
+struct Load {
+    hz: f64,
+    clients: usize,
+    texts: usize,
+}
+
+fn run(repo: &std::path::Path, dataset: &std::path::Path, load: Option<Load>) {
     let (config, ctx) = vlem_core::load_config(&repo.join("configs/demo.toml")).unwrap();
     let mut source = vlem_datasets::open(&config.dataset, dataset).unwrap();
     let mut pipeline = Pipeline::from_config(&config, &ctx).unwrap();
     let live = pipeline.live();
     let segmenter = Selection::threshold().build(&ctx).unwrap();
-    let texts = vec!["white wall".to_owned(), "brown".to_owned()];
+    const WORDS: [&str; 8] = [
+        "white wall",
+        "brown",
+        "red",
+        "green",
+        "blue",
+        "yellow",
+        "grey",
+        "black",
+    ];
+    let texts: Vec<String> = (0..load.map_or(0, |l| l.texts))
+        .map(|i| WORDS[i % WORDS.len()].to_owned())
+        .collect();
     let mapping = AtomicBool::new(true);
     let start = Instant::now();
     let (report, latencies) = std::thread::scope(|scope| {
-        let queries = hz.map(|hz| {
-            let (live, segmenter, texts, mapping) = (&live, &segmenter, &texts, &mapping);
-            scope.spawn(move || {
-                let period = Duration::from_secs_f64(1.0 / hz);
-                let mut latencies = Vec::new();
-                while mapping.load(Ordering::Acquire) {
-                    let t = Instant::now();
-                    let _ = answer_live(live, segmenter.as_ref(), texts, &AnswerOptions::default());
-                    let took = t.elapsed();
-                    latencies.push(took.as_secs_f64() * 1e3);
-                    std::thread::sleep(period.saturating_sub(took));
-                }
-                latencies
+        let clients: Vec<_> = (0..load.map_or(0, |l| l.clients))
+            .map(|_| {
+                let (live, segmenter, texts, mapping) = (&live, &segmenter, &texts, &mapping);
+                let period = Duration::from_secs_f64(1.0 / load.map_or(1.0, |l| l.hz));
+                scope.spawn(move || {
+                    let mut latencies = Vec::new();
+                    while mapping.load(Ordering::Acquire) {
+                        let t = Instant::now();
+                        let _ =
+                            answer_live(live, segmenter.as_ref(), texts, &AnswerOptions::default());
+                        let took = t.elapsed();
+                        latencies.push(took.as_secs_f64() * 1e3);
+                        std::thread::sleep(period.saturating_sub(took));
+                    }
+                    latencies
+                })
             })
-        });
+            .collect();
         let report = pipeline
             .run(source.as_mut(), None, &|_: Progress| {})
             .unwrap();
         mapping.store(false, Ordering::Release);
-        let latencies = queries.map(|q| q.join().unwrap()).unwrap_or_default();
+        let latencies: Vec<f64> = clients
+            .into_iter()
+            .flat_map(|c| c.join().unwrap())
+            .collect();
         (report, latencies)
     });
     let wall = start.elapsed().as_secs_f64();
@@ -90,7 +124,9 @@ fn run(repo: &std::path::Path, dataset: &std::path::Path, hz: Option<f64>) {
     println!(
         "{}",
         serde_json::json!({
-            "query_hz": hz,
+            "query_hz": load.map(|l| l.hz),
+            "clients": load.map_or(0, |l| l.clients),
+            "texts_per_query": texts.len(),
             "frames": report.frames_processed,
             "frames_per_second": report.frames_processed as f64 / wall,
             "integrate_mean_ms": report.stage_ms.get("integrate").map(|t| t.mean_ms),

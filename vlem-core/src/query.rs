@@ -52,6 +52,105 @@ pub fn normalised_similarity(
     Ok(())
 }
 
+/// [`normalised_similarity`] of several texts in one pass over `embeddings`: each row is read
+/// once and scored against every text (the texts stay in cache), so `T` texts cost one pass over
+/// the table's memory instead of `T`. `out[t]` receives `texts[t]`'s scores, bit for bit what
+/// [`normalised_similarity`] gives.
+///
+/// # Errors
+/// As [`normalised_similarity`], for the first text of the wrong length.
+pub fn normalised_similarity_many(
+    embeddings: &[f32],
+    dim: usize,
+    texts: &[&[f32]],
+    out: &mut Vec<Vec<f32>>,
+) -> Result<()> {
+    check_texts(embeddings.len(), dim, texts)?;
+    let n = embeddings.len() / dim;
+    for_each_row_scored(n, texts.len(), out, |row, scores| {
+        let e = &embeddings[row * dim..(row + 1) * dim];
+        for (s, text) in scores.iter_mut().zip(texts) {
+            *s = (dot(e, text) + 1.0) * 0.5;
+        }
+    });
+    Ok(())
+}
+
+/// The checks of [`normalised_similarity`] for every text: each `dim` long, the table a whole
+/// number of rows.
+///
+/// # Errors
+/// [`CoreError::DimensionMismatch`] naming the first mismatch.
+pub fn check_texts(values: usize, dim: usize, texts: &[&[f32]]) -> Result<()> {
+    if let Some(text) = texts.iter().find(|t| t.len() != dim) {
+        return Err(CoreError::DimensionMismatch {
+            what: "query embedding".into(),
+            expected: dim,
+            actual: text.len(),
+        });
+    }
+    if dim == 0 {
+        return Err(CoreError::DimensionMismatch {
+            what: "query embedding".into(),
+            expected: 0,
+            actual: 0,
+        });
+    }
+    if !values.is_multiple_of(dim) {
+        return Err(CoreError::DimensionMismatch {
+            what: "map embedding table (length modulo dim)".into(),
+            expected: 0,
+            actual: values % dim,
+        });
+    }
+    Ok(())
+}
+
+/// Rows scored against `texts` texts: `score(row, scores)` fills one row's score per text, and
+/// the scores land in `out[t][row]`. Blocks of rows run in parallel on large tables; each block
+/// gathers its rows' scores in a small row-major buffer and scatters them per text, so no text's
+/// output is shared between threads.
+pub fn for_each_row_scored(
+    rows: usize,
+    texts: usize,
+    out: &mut Vec<Vec<f32>>,
+    score: impl Fn(usize, &mut [f32]) + Sync,
+) {
+    /// Rows per block: a block's buffer (rows × texts) stays in the L1/L2 cache.
+    const BLOCK: usize = 1024;
+    out.resize_with(texts, Vec::new);
+    for scores in out.iter_mut() {
+        scores.clear();
+        scores.resize(rows, 0.0);
+    }
+    if texts == 0 || rows == 0 {
+        return;
+    }
+    let blocks = rows.div_ceil(BLOCK);
+    let block_scores = |b: usize| {
+        let start = b * BLOCK;
+        let end = (start + BLOCK).min(rows);
+        let mut buffer = vec![0.0f32; (end - start) * texts];
+        for (i, scores) in buffer.chunks_exact_mut(texts).enumerate() {
+            score(start + i, scores);
+        }
+        (start, buffer)
+    };
+    let mut place = |(start, buffer): (usize, Vec<f32>)| {
+        for (i, scores) in buffer.chunks_exact(texts).enumerate() {
+            for (t, &s) in scores.iter().enumerate() {
+                out[t][start + i] = s;
+            }
+        }
+    };
+    if rows >= PARALLEL_MIN_POINTS {
+        let done: Vec<_> = (0..blocks).into_par_iter().map(block_scores).collect();
+        done.into_iter().for_each(&mut place);
+    } else {
+        (0..blocks).map(block_scores).for_each(place);
+    }
+}
+
 /// Dot product written so the compiler vectorises it (eight independent accumulators).
 #[inline]
 pub fn dot(a: &[f32], b: &[f32]) -> f32 {
@@ -70,6 +169,37 @@ pub fn dot(a: &[f32], b: &[f32]) -> f32 {
 #[cfg(test)]
 mod tests {
     use super::*;
+
+    #[test]
+    fn many_texts_in_one_pass_score_as_one_text_at_a_time() {
+        for n in [0, 5, 1023, 1025, PARALLEL_MIN_POINTS + 7] {
+            let dim = 19;
+            let embeddings: Vec<f32> = (0..n * dim)
+                .map(|i| ((i * 7919) % 1000) as f32 / 1000.0 - 0.5)
+                .collect();
+            let texts: Vec<Vec<f32>> = (0..4)
+                .map(|t| {
+                    (0..dim)
+                        .map(|k| ((t * 31 + k * 17) % 13) as f32 / 13.0)
+                        .collect()
+                })
+                .collect();
+            let refs: Vec<&[f32]> = texts.iter().map(Vec::as_slice).collect();
+            let mut many = Vec::new();
+            normalised_similarity_many(&embeddings, dim, &refs, &mut many).unwrap();
+            assert_eq!(many.len(), 4);
+            for (text, scores) in texts.iter().zip(&many) {
+                let mut one = Vec::new();
+                normalised_similarity(&embeddings, dim, text, &mut one).unwrap();
+                assert_eq!(&one, scores, "n = {n}");
+            }
+        }
+        let mut out = Vec::new();
+        let err = normalised_similarity_many(&[0.0; 4], 2, &[&[1.0, 0.0], &[1.0]], &mut out);
+        assert!(err.is_err());
+        normalised_similarity_many(&[0.0; 4], 2, &[], &mut out).unwrap();
+        assert!(out.is_empty());
+    }
 
     #[test]
     fn similarity_maps_cosine_to_unit_interval() {

@@ -288,6 +288,45 @@ impl EmbeddingStore {
     }
 }
 
+impl EmbeddingStore {
+    /// [`EmbeddingStore::similarity`] of several texts in one pass over the table (each row read
+    /// and, in f16, widened once), `out[t]` bit for bit what `similarity(texts[t])` gives.
+    ///
+    /// # Errors
+    /// [`CoreError::DimensionMismatch`] when a text is not `dim` long.
+    pub fn similarity_many(&self, texts: &[&[f32]], out: &mut Vec<Vec<f32>>) -> Result<()> {
+        match &self.values {
+            Values::F32(v) => vlem_core::query::normalised_similarity_many(v, self.dim, texts, out),
+            Values::F16(v) => {
+                vlem_core::query::check_texts(v.len(), self.dim, texts)?;
+                let d = self.dim;
+                vlem_core::query::for_each_row_scored(
+                    v.len() / d,
+                    texts.len(),
+                    out,
+                    |r, scores| {
+                        let row = &v[r * d..(r + 1) * d];
+                        let mut wide = [0.0f32; 64];
+                        scores.fill(0.0);
+                        // The same 64-value chunks, summed in the same order, as `similarity`.
+                        for (c, chunk) in row.chunks(64).enumerate() {
+                            let wide = &mut wide[..chunk.len()];
+                            chunk.convert_to_f32_slice(wide);
+                            for (s, text) in scores.iter_mut().zip(texts) {
+                                *s += dot(wide, &text[c * 64..c * 64 + chunk.len()]);
+                            }
+                        }
+                        for s in scores.iter_mut() {
+                            *s = (*s + 1.0) * 0.5;
+                        }
+                    },
+                );
+                Ok(())
+            }
+        }
+    }
+}
+
 /// `e_M := (1 - w) e_P + w e_M`, renormalised; falls back to `e_P` when the two cancel out.
 #[inline]
 pub fn fuse_into(map: &mut [f32], observed: &[f32], map_weight: f32) {

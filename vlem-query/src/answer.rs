@@ -8,7 +8,7 @@
 
 use serde::{Deserialize, Serialize};
 use vlem_core::live::LiveMap;
-use vlem_core::query::normalised_similarity;
+use vlem_core::query::normalised_similarity_many;
 use vlem_core::{
     BuildContext, Encoder, MapMetadata, MapSnapshot, PointSet, QueryScores, Registry, Segmenter,
     StageConfig,
@@ -173,34 +173,44 @@ fn check_dim(map_dim: usize, encoder: &dyn Encoder) -> Result<()> {
 /// # Errors
 /// [`QueryError::EncoderDimension`] when `texts` were embedded in another dimension than the map's.
 pub fn score_snapshot(snapshot: &MapSnapshot, texts: &EmbeddedTexts) -> Result<QueryScores> {
-    let score = |e: &Vec<f32>| -> Result<Vec<f32>> {
-        let mut s = Vec::new();
-        normalised_similarity(&snapshot.embeddings, snapshot.dim, e, &mut s)?;
-        Ok(s)
-    };
+    let all: Vec<&[f32]> = texts
+        .embeddings
+        .iter()
+        .chain(&texts.baseline)
+        .map(Vec::as_slice)
+        .collect();
+    let mut scores = Vec::new();
+    normalised_similarity_many(&snapshot.embeddings, snapshot.dim, &all, &mut scores)?;
+    let baseline = texts.baseline.as_ref().and_then(|_| scores.pop());
     Ok(QueryScores {
         queries: texts.texts.clone(),
-        scores: texts.embeddings.iter().map(score).collect::<Result<_>>()?,
-        baseline: texts.baseline.as_ref().map(score).transpose()?,
+        scores,
+        baseline,
     })
 }
 
 /// Scores the live map as it is after a whole number of frames, holding its read lock for one
-/// similarity pass per text and a copy of the positions.
+/// similarity pass over the map (all texts at once) and a copy of the positions.
 ///
 /// # Errors
 /// A live map without a map, or similarities of the wrong dimension.
 pub fn score_live(live: &LiveMap, texts: &EmbeddedTexts) -> Result<Scored> {
+    // Every text and the baseline in one pass over the map: the read lock (which integration
+    // waits for) is held for one pass, however many texts a query has.
+    let all: Vec<&[f32]> = texts
+        .embeddings
+        .iter()
+        .chain(&texts.baseline)
+        .map(Vec::as_slice)
+        .collect();
     live.read(|view| -> Result<Scored> {
-        let score = |e: &Vec<f32>| -> Result<Vec<f32>> {
-            let mut s = Vec::new();
-            view.map.similarity(e, &mut s)?;
-            Ok(s)
-        };
+        let mut scored = Vec::new();
+        view.map.similarity_many(&all, &mut scored)?;
+        let baseline = texts.baseline.as_ref().and_then(|_| scored.pop());
         let scores = QueryScores {
             queries: texts.texts.clone(),
-            scores: texts.embeddings.iter().map(score).collect::<Result<_>>()?,
-            baseline: texts.baseline.as_ref().map(score).transpose()?,
+            scores: scored,
+            baseline,
         };
         Ok(Scored {
             positions: view.map.coloured_points().vertices,

@@ -293,6 +293,21 @@ pub fn check_query_and_dimensions(build: MapFactory) {
         .unwrap_or_else(|e| unreachable(e));
     assert_eq!(scores.len(), map.len());
     assert!(scores.iter().all(|s| (0.0..=1.0).contains(s)));
+    // Several texts at once score exactly as one at a time (one pass or the default loop).
+    let mut other = vec![0.0; DIM];
+    other[0] = 0.6;
+    other[2] = 0.8;
+    let mut many = Vec::new();
+    map.similarity_many(&[&text, &other, &text], &mut many)
+        .unwrap_or_else(|e| unreachable(e));
+    let mut other_scores = Vec::new();
+    map.similarity(&other, &mut other_scores)
+        .unwrap_or_else(|e| unreachable(e));
+    assert_eq!(many, vec![scores.clone(), other_scores, scores.clone()]);
+    assert!(
+        map.similarity_many(&[&text, &[1.0; 3]], &mut many).is_err(),
+        "wrong query dimension accepted among several texts"
+    );
     assert!(
         map.similarity(&[1.0; 3], &mut scores).is_err(),
         "wrong query dimension accepted"

@@ -83,6 +83,21 @@ pub trait EmbeddingMap: Send + Sync {
     /// [`CoreError::DimensionMismatch`] when `text` has the wrong length.
     fn similarity(&self, text: &[f32], out: &mut Vec<f32>) -> Result<()>;
 
+    /// [`EmbeddingMap::similarity`] for several texts at once: `out[t]` for `texts[t]` (`out` is
+    /// resized to `texts.len()`). Maps whose embeddings sit in one table override it with one
+    /// pass over the table for all texts, which is what bounds how long a query holds the live
+    /// map's read lock; the default scores one text after another.
+    ///
+    /// # Errors
+    /// As [`EmbeddingMap::similarity`].
+    fn similarity_many(&self, texts: &[&[f32]], out: &mut Vec<Vec<f32>>) -> Result<()> {
+        out.resize_with(texts.len(), Vec::new);
+        for (text, scores) in texts.iter().zip(out.iter_mut()) {
+            self.similarity(text, scores)?;
+        }
+        Ok(())
+    }
+
     /// Every element as point, colour and embedding, for saving and querying.
     fn snapshot(&self) -> MapSnapshot;
 

@@ -605,6 +605,10 @@ impl EmbeddingMap for PointCloudMap {
         self.embeddings.similarity(text, out)
     }
 
+    fn similarity_many(&self, texts: &[&[f32]], out: &mut Vec<Vec<f32>>) -> vlem_core::Result<()> {
+        self.embeddings.similarity_many(texts, out)
+    }
+
     fn coloured_points(&self) -> ColouredMesh {
         ColouredMesh {
             vertices: self.positions.clone(),

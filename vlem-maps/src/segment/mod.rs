@@ -605,11 +605,16 @@ impl EmbeddingMap for SegmentMap {
     fn similarity(&self, text: &[f32], out: &mut Vec<f32>) -> vlem_core::Result<()> {
         let mut per_segment = Vec::new();
         self.embeddings.similarity(text, &mut per_segment)?;
-        out.clear();
-        out.reserve(self.owner.len());
-        for s in self.segments.values() {
-            let score = per_segment.get(s.row).copied().unwrap_or(0.0);
-            out.extend(std::iter::repeat_n(score, s.cells.len()));
+        self.spread_to_cells(&per_segment, out);
+        Ok(())
+    }
+
+    fn similarity_many(&self, texts: &[&[f32]], out: &mut Vec<Vec<f32>>) -> vlem_core::Result<()> {
+        let mut per_segment = Vec::new();
+        self.embeddings.similarity_many(texts, &mut per_segment)?;
+        out.resize_with(texts.len(), Vec::new);
+        for (scores, cells) in per_segment.iter().zip(out.iter_mut()) {
+            self.spread_to_cells(scores, cells);
         }
         Ok(())
     }
@@ -696,6 +701,16 @@ impl EmbeddingMap for SegmentMap {
 }
 
 impl SegmentMap {
+    /// Each cell gets its segment's score (cells in the order of `snapshot`).
+    fn spread_to_cells(&self, per_segment: &[f32], out: &mut Vec<f32>) {
+        out.clear();
+        out.reserve(self.owner.len());
+        for s in self.segments.values() {
+            let score = per_segment.get(s.row).copied().unwrap_or(0.0);
+            out.extend(std::iter::repeat_n(score, s.cells.len()));
+        }
+    }
+
     fn restore_segment(&mut self, embedding: &[f32], cells: BTreeMap<CellKey, Cell>, now: u64) {
         if cells.is_empty() {
             return;
