@@ -158,6 +158,8 @@ pub struct RunReport {
     pub wall_seconds: f64,
     /// Whether the run ended early because its [`StopHandle`] was used.
     pub stopped: bool,
+    /// What the source warned about (missing frames, a bag's dropped messages, …).
+    pub source_warnings: Vec<String>,
     /// The trajectory, one entry per tracked frame.
     #[serde(skip)]
     pub trajectory: Vec<TrajectoryEntry>,
@@ -232,6 +234,8 @@ pub struct RunStats {
     pub wall_seconds: f64,
     /// Whether the run was stopped early ([`StopHandle`]).
     pub stopped: bool,
+    /// What the source warned about (missing frames, …); empty when nothing.
+    pub warnings: Vec<String>,
     /// The map after the run, when there is one.
     pub map: Option<MapStats>,
     /// Peak resident memory of the process, where the platform reports it.
@@ -270,6 +274,7 @@ impl RunReport {
             stage_load: self.stage_load.clone(),
             wall_seconds: self.wall_seconds,
             stopped: self.stopped,
+            warnings: self.source_warnings.clone(),
             map: map.map(MapStats::of),
             peak_resident_bytes,
         }
@@ -464,6 +469,7 @@ impl Pipeline {
             (true, limit) => limit.unwrap_or(usize::MAX),
             (false, limit) => limit.map_or(source.len(), |n| n.min(source.len())),
         };
+        let source_warnings = source.warnings();
         let start = Instant::now();
         let (sender, receiver) = sync_channel::<Work>(self.config.queue_capacity);
         let config = self.config.clone();
@@ -551,6 +557,7 @@ impl Pipeline {
             stages: self.config.stages,
             wall_seconds: start.elapsed().as_secs_f64(),
             stopped: tracking.stopped,
+            source_warnings,
             trajectory: tracking.trajectory,
         })
     }

@@ -91,6 +91,19 @@ pub enum DatasetError {
         /// Depth images found.
         depth_count: usize,
     },
+    /// Colour and depth files paired by order whose frame numbers differ.
+    #[error(
+        "{} is paired with {} by their sorted order, but their frame numbers differ: a colour or \
+         depth image is missing; restore it, or pair the files in an rgbd.match file",
+        colour.display(),
+        depth.display()
+    )]
+    Unpaired {
+        /// The colour image.
+        colour: PathBuf,
+        /// The depth image.
+        depth: PathBuf,
+    },
     /// A text file (list, trajectory, calibration) with a malformed line.
     #[error("{}:{line}: {message}", path.display())]
     Parse {
@@ -139,6 +152,24 @@ pub enum DatasetError {
         poses: usize,
         /// Frames (of the underlying sequence) that need a pose.
         needed: usize,
+    },
+    /// A frame of a sequence with missing frame numbers that the trajectory has no pose for.
+    #[error(
+        "{}: frame {frame} has no pose in {}; frames are missing from the folder ({missing}), so \
+         poses are matched to the frames by their file numbers, not by position: restore the \
+         missing frames, or give a trajectory whose frame ids are the file numbers",
+        path.display(),
+        trajectory.display()
+    )]
+    NoPoseForFrame {
+        /// The frame's depth image.
+        path: PathBuf,
+        /// Its frame number.
+        frame: u64,
+        /// The trajectory file.
+        trajectory: PathBuf,
+        /// Which numbers are missing, for the message.
+        missing: String,
     },
     /// A TUM frame with no ground-truth pose close enough in time and none on both sides.
     #[error(

@@ -11,7 +11,9 @@
 //! ```
 //!
 //! Without `rgbd.match`, colour and depth files are paired by their sorted order, so numbering may
-//! start anywhere.
+//! start anywhere; numbered files must then pair equal numbers. Poses go to the frames in order,
+//! unless frame numbers are missing (a frame's images deleted): then each frame takes the pose
+//! whose `.log` frame id is its file number, and the gap is a warning.
 
 use std::path::{Path, PathBuf};
 
@@ -21,11 +23,11 @@ use vlem_core::config::DatasetConfig;
 use crate::calibration::read_open3d_intrinsics;
 use crate::error::{DatasetError, Result};
 use crate::sequence::{
-    Camera, ColourFit, Entry, Selection, Sequence, attach_poses, depth_scale, list_files,
-    reader_via_sequence, require_file,
+    Camera, ColourFit, Entry, MissingFrames, Selection, Sequence, attach_trajectory, depth_scale,
+    frame_number, list_files, reader_via_sequence, require_file,
 };
 use crate::text::{match_pairs_from_str, read_text};
-use crate::trajectory::read_log;
+use crate::trajectory::read_numbered_log;
 
 /// Raw depth units per metre of ICL-NUIM and Redwood (millimetres).
 pub const ICL_DEPTH_SCALE: f64 = 1000.0;
@@ -53,18 +55,22 @@ impl IclReader {
     /// # Errors
     /// [`DatasetError::MissingFile`] for a missing `depth/`, colour folder or intrinsics file (the
     /// message lists the names tried), [`DatasetError::CountMismatch`] when the folders cannot be
-    /// paired, trajectory errors of [`read_log`], [`DatasetError::TooFewPoses`],
+    /// paired, trajectory errors of [`crate::trajectory::read_log`], [`DatasetError::TooFewPoses`],
+    /// [`DatasetError::NoPoseForFrame`] when frames are missing and one has no pose by number,
     /// [`DatasetError::Ambiguous`] for several `.log` files, [`DatasetError::BadConfig`] and
     /// [`DatasetError::Empty`].
     pub fn open(dir: &Path, config: &DatasetConfig) -> Result<Self> {
         let selection = Selection::from_config(config, dir)?;
         let scale = depth_scale(config, ICL_DEPTH_SCALE, dir)?;
         let (entries, label_names) = attach_labels(dir, frame_files(dir)?)?;
+        let missing = MissingFrames::of(&entries);
         let mut selected = selection.apply(entries);
         let intrinsics_path = find_intrinsics(dir, config)?;
         let intrinsics = read_open3d_intrinsics(&intrinsics_path)?;
-        if let Some(trajectory) = find_trajectory(dir, config)? {
-            attach_poses(&mut selected, &read_log(&trajectory)?, &trajectory)?;
+        let trajectory = find_trajectory(dir, config)?;
+        if let Some(trajectory) = &trajectory {
+            let poses = read_numbered_log(trajectory)?;
+            attach_trajectory(&mut selected, &missing, &poses, trajectory)?;
         }
         let seq = Sequence::new(
             "ICL-NUIM/Redwood",
@@ -73,7 +79,8 @@ impl IclReader {
             Camera::from_file(intrinsics, &intrinsics_path),
             scale,
             ColourFit::SameSize,
-        )?;
+        )?
+        .with_warning(missing.warning(dir, trajectory.is_some()));
         let seq = match label_names {
             Some(names) => seq.with_label_names(names),
             None => seq,
@@ -156,11 +163,21 @@ fn frame_files(dir: &Path) -> Result<Vec<Entry>> {
             depth_count: depth.len(),
         });
     }
-    Ok(colour
+    colour
         .into_iter()
         .zip(depth)
-        .map(|(c, d)| Entry::new(c, d))
-        .collect())
+        .map(|(c, d)| {
+            // Paired by sorted order: numbered files must pair the same number, or one frame's
+            // colour would be mapped with another frame's depth.
+            match (frame_number(&c), frame_number(&d)) {
+                (Some(a), Some(b)) if a != b => Err(DatasetError::Unpaired {
+                    colour: c,
+                    depth: d,
+                }),
+                _ => Ok(Entry::new(c, d)),
+            }
+        })
+        .collect()
 }
 
 /// Reads `rgbd.match`: one `depth-path colour-path` pair per line, relative to the folder.

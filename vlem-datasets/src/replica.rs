@@ -19,8 +19,8 @@ use vlem_core::config::DatasetConfig;
 use crate::calibration::REPLICA_DEFAULT_INTRINSICS;
 use crate::error::Result;
 use crate::sequence::{
-    Camera, ColourFit, Entry, Selection, Sequence, attach_poses, depth_scale, list_files,
-    reader_via_sequence, require_file,
+    Camera, ColourFit, Entry, MissingFrames, Selection, Sequence, attach_trajectory, depth_scale,
+    list_files, reader_via_sequence, require_file,
 };
 use crate::text::{data_lines, parse_exact, read_text};
 use crate::trajectory::pose_from_matrix;
@@ -47,10 +47,15 @@ impl ReplicaReader {
     pub fn open(dir: &Path, config: &DatasetConfig) -> Result<Self> {
         let selection = Selection::from_config(config, dir)?;
         let scale = depth_scale(config, REPLICA_DEPTH_SCALE, dir)?;
-        let mut selected = selection.apply(frame_files(dir)?);
+        let entries = frame_files(dir)?;
+        let missing = MissingFrames::of(&entries);
+        let mut selected = selection.apply(entries);
         let trajectory = dir.join("traj.txt");
-        if trajectory.is_file() {
-            attach_poses(&mut selected, &read_trajectory(&trajectory)?, &trajectory)?;
+        let has_trajectory = trajectory.is_file();
+        if has_trajectory {
+            // traj.txt has no frame ids: line k is frame k.
+            let poses: Vec<(u64, Pose)> = (0u64..).zip(read_trajectory(&trajectory)?).collect();
+            attach_trajectory(&mut selected, &missing, &poses, &trajectory)?;
         }
         let camera = Camera::from_config_or_default(
             config,
@@ -65,7 +70,8 @@ impl ReplicaReader {
             camera,
             scale,
             ColourFit::SameSize,
-        )?;
+        )?
+        .with_warning(missing.warning(dir, has_trajectory));
         Ok(Self { seq })
     }
 }

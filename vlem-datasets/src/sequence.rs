@@ -150,6 +150,101 @@ pub(crate) fn depth_scale(config: &DatasetConfig, default: f64, dir: &Path) -> R
     Ok(scale as f32)
 }
 
+/// The frame numbers missing from a numbered sequence: numbers between the first and the last
+/// file's that no frame has (a frame whose images were deleted). None when the files are not all
+/// numbered (they are then taken in order) or have no gap.
+#[derive(Clone, Debug, Default, PartialEq, Eq)]
+pub(crate) struct MissingFrames {
+    /// How many numbers are missing.
+    pub(crate) count: u64,
+    /// The first few of them.
+    pub(crate) first: Vec<u64>,
+}
+
+impl MissingFrames {
+    /// Numbers listed in [`MissingFrames::first`].
+    const LISTED: usize = 8;
+
+    /// The gaps in the depth files' numbers of `entries` (the whole sequence, before selection).
+    pub(crate) fn of(entries: &[Entry]) -> Self {
+        let numbers: Option<Vec<u64>> = entries.iter().map(|e| frame_number(&e.depth)).collect();
+        let Some(mut numbers) = numbers else {
+            return Self::default();
+        };
+        numbers.sort_unstable();
+        numbers.dedup();
+        let mut missing = Self::default();
+        for pair in numbers.windows(2) {
+            let (a, b) = (pair[0], pair[1]);
+            missing.count += b - a - 1;
+            missing
+                .first
+                .extend((a + 1..b).take(Self::LISTED - missing.first.len().min(Self::LISTED)));
+        }
+        missing
+    }
+
+    /// `5` or `5, 9, 10 and 3 more`.
+    pub(crate) fn describe(&self) -> String {
+        let listed: Vec<String> = self.first.iter().map(u64::to_string).collect();
+        let more = self.count.saturating_sub(self.first.len() as u64);
+        let noun = if self.count == 1 { "frame" } else { "frames" };
+        if more > 0 {
+            format!("{noun} {} and {more} more", listed.join(", "))
+        } else {
+            format!("{noun} {}", listed.join(", "))
+        }
+    }
+
+    /// The warning a sequence with gaps gets (`None` without gaps).
+    pub(crate) fn warning(&self, dir: &Path, poses: bool) -> Option<String> {
+        (self.count > 0).then(|| {
+            format!(
+                "{}: {} missing (their colour and depth images are not there): {}",
+                dir.display(),
+                self.describe(),
+                if poses {
+                    "the other frames get their poses by frame number"
+                } else {
+                    "the frames on either side of a gap are mapped as neighbours"
+                }
+            )
+        })
+    }
+}
+
+/// Gives each selected frame its pose from a whole-sequence trajectory whose poses carry frame
+/// ids (a `.log` file's metadata lines, or line numbers for files without ids). Without missing
+/// frames, poses go to frames in order, so numbering may start anywhere; with missing frames
+/// (`missing`), each frame takes the pose whose id is its file number, never the pose at its
+/// position, and a frame without one is an error naming its file.
+pub(crate) fn attach_trajectory(
+    selected: &mut [(usize, Entry)],
+    missing: &MissingFrames,
+    poses: &[(u64, Pose)],
+    trajectory: &Path,
+) -> Result<()> {
+    if missing.count == 0 {
+        let in_order: Vec<Pose> = poses.iter().map(|&(_, pose)| pose).collect();
+        return attach_poses(selected, &in_order, trajectory);
+    }
+    let by_id: std::collections::HashMap<u64, Pose> = poses.iter().copied().collect();
+    for (_, entry) in selected.iter_mut() {
+        // Every file is numbered when frames are missing.
+        let number = frame_number(&entry.depth).unwrap_or(u64::MAX);
+        let pose = by_id
+            .get(&number)
+            .ok_or_else(|| DatasetError::NoPoseForFrame {
+                path: entry.depth.clone(),
+                frame: number,
+                trajectory: trajectory.to_path_buf(),
+                missing: missing.describe(),
+            })?;
+        entry.pose = PoseRef::Known(*pose);
+    }
+    Ok(())
+}
+
 /// Gives each selected frame the pose of its underlying index from a whole-sequence trajectory.
 pub(crate) fn attach_poses(
     selected: &mut [(usize, Entry)],
@@ -244,6 +339,9 @@ pub(crate) struct Sequence {
     pub(crate) colour_fit: ColourFit,
     /// Class names of a labelled dataset (whose entries carry label files).
     pub(crate) label_names: Option<std::sync::Arc<vlem_core::LabelNames>>,
+    /// What a user should know about the folder (missing frames), printed at start-up and kept
+    /// in the run's stats.
+    pub(crate) warnings: Vec<String>,
 }
 
 impl Sequence {
@@ -269,7 +367,14 @@ impl Sequence {
             depth_scale,
             colour_fit,
             label_names: None,
+            warnings: Vec::new(),
         })
+    }
+
+    /// Adds a warning (see [`Sequence::warnings`]).
+    pub(crate) fn with_warning(mut self, warning: Option<String>) -> Self {
+        self.warnings.extend(warning);
+        self
     }
 
     /// Marks the sequence as labelled: frames whose entry has a label file get its labels.
@@ -402,6 +507,10 @@ macro_rules! reader_via_sequence {
                 self.seq.has_poses()
             }
 
+            fn warnings(&self) -> Vec<String> {
+                self.seq.warnings.clone()
+            }
+
             fn frame(&mut self, index: usize) -> vlem_core::Result<vlem_core::Frame> {
                 Ok(self.seq.frame(index)?)
             }
@@ -452,5 +561,36 @@ mod tests {
         };
         let err = Selection::from_config(&zero, dir).unwrap_err().to_string();
         assert_eq!(err, "/d: [dataset] stride must be at least 1");
+    }
+
+    #[test]
+    fn missing_frame_numbers_are_found_and_described() {
+        let entries = |numbers: &[u64]| -> Vec<Entry> {
+            numbers
+                .iter()
+                .map(|n| {
+                    Entry::new(
+                        PathBuf::from(format!("c/{n:05}.png")),
+                        PathBuf::from(format!("d/{n:05}.png")),
+                    )
+                })
+                .collect()
+        };
+        assert_eq!(MissingFrames::of(&entries(&[3, 4, 5])).count, 0);
+        let m = MissingFrames::of(&entries(&[0, 1, 3, 7]));
+        assert_eq!((m.count, m.first.clone()), (4, vec![2, 4, 5, 6]));
+        assert_eq!(m.describe(), "frames 2, 4, 5, 6");
+        let m = MissingFrames::of(&entries(&[0, 1_000_000_000_000]));
+        assert_eq!(m.count, 999_999_999_999);
+        assert_eq!(m.first.len(), 8);
+        assert!(
+            m.describe().ends_with("and 999999999991 more"),
+            "{}",
+            m.describe()
+        );
+        // Unnumbered files are taken in order: no gaps to speak of.
+        let mut mixed = entries(&[0, 5]);
+        mixed.push(Entry::new("c/x.png".into(), "d/x.png".into()));
+        assert_eq!(MissingFrames::of(&mixed), MissingFrames::default());
     }
 }

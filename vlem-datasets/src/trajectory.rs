@@ -45,6 +45,22 @@ pub fn read_log(path: &Path) -> Result<Vec<Pose>> {
 /// [`DatasetError::NonFinitePose`] / [`DatasetError::NotRotation`] for an unusable matrix and
 /// [`DatasetError::NoPoses`] for a text without poses.
 pub fn log_from_str(text: &str, path: &Path) -> Result<Vec<Pose>> {
+    Ok(numbered_log_from_str(text, path)?
+        .into_iter()
+        .map(|(_, pose)| pose)
+        .collect())
+}
+
+/// Reads a Redwood `.log` trajectory with each pose's frame id: the first number of its metadata
+/// line (`i j k`: the frame `i` the pose belongs to).
+///
+/// # Errors
+/// As [`read_log`], and [`DatasetError::Parse`] for a frame id that is not a whole number.
+pub fn read_numbered_log(path: &Path) -> Result<Vec<(u64, Pose)>> {
+    numbered_log_from_str(&read_text(path)?, path)
+}
+
+fn numbered_log_from_str(text: &str, path: &Path) -> Result<Vec<(u64, Pose)>> {
     let lines: Vec<(usize, &str)> = data_lines(text).collect();
     // A record is the metadata line plus four matrix rows.
     let mut poses = Vec::with_capacity(lines.len() / 5);
@@ -53,7 +69,14 @@ pub fn log_from_str(text: &str, path: &Path) -> Result<Vec<Pose>> {
             continue;
         };
         let (header_line, header_text) = header;
-        parse_exact(path, header_line, header_text, 3)?;
+        let id = parse_exact(path, header_line, header_text, 3)?[0];
+        if !(id >= 0.0 && id.fract() == 0.0 && id < 2f64.powi(53)) {
+            return Err(DatasetError::parse(
+                path,
+                header_line,
+                format!("frame {frame}: the frame id {id} is not a whole number"),
+            ));
+        }
         if rows.len() != 4 {
             return Err(DatasetError::parse(
                 path,
@@ -69,7 +92,14 @@ pub fn log_from_str(text: &str, path: &Path) -> Result<Vec<Pose>> {
             values.extend(parse_exact(path, line, row, 4)?);
         }
         let matrix = Matrix4::from_row_slice(&values);
-        poses.push(pose_from_matrix(&matrix, path, frame)?);
+        // A whole number below 2^53, so the conversion is exact.
+        #[allow(
+            clippy::cast_possible_truncation,
+            clippy::cast_sign_loss,
+            reason = "checked above"
+        )]
+        let id = id as u64;
+        poses.push((id, pose_from_matrix(&matrix, path, frame)?));
     }
     if poses.is_empty() {
         return Err(DatasetError::NoPoses {

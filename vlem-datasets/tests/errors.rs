@@ -339,3 +339,72 @@ fn bags_are_detected_and_a_build_without_the_reader_says_so() {
         .to_string();
     assert!(err.contains("kind is not \"rosbag2\""), "{err}");
 }
+
+/// Removes frame `k`'s colour and depth images from an ICL folder written by `write_icl`.
+fn delete_frame(dir: &std::path::Path, k: usize) {
+    std::fs::remove_file(dir.join(format!("color/{k:05}.png"))).unwrap();
+    std::fs::remove_file(dir.join(format!("depth/{k:05}.png"))).unwrap();
+}
+
+#[test]
+fn a_deleted_frame_shifts_no_pose_and_is_a_warning() {
+    use vlem_core::FrameSource;
+    let tmp = tempfile::tempdir().unwrap();
+    common::write_icl(tmp.path(), 0, 6, true);
+    delete_frame(tmp.path(), 2);
+    let mut reader = IclReader::open(tmp.path(), &DatasetConfig::default()).unwrap();
+    assert_eq!(reader.len(), 5);
+    // Frame k's pose is at x = k: the frames after the gap keep theirs.
+    let xs: Vec<f64> = (0..5)
+        .map(|i| reader.load(i).unwrap().pose.unwrap().translation.vector.x)
+        .collect();
+    assert_eq!(xs, [0.0, 1.0, 3.0, 4.0, 5.0]);
+    let warnings = reader.warnings();
+    assert_eq!(warnings.len(), 1, "{warnings:?}");
+    assert!(
+        warnings[0].contains("frame 2 missing") && warnings[0].contains("by frame number"),
+        "{warnings:?}"
+    );
+    assert!(reader.frame(2).is_ok());
+    // Without a trajectory, the gap is still said.
+    std::fs::remove_file(tmp.path().join("trajectory.log")).unwrap();
+    let reader = IclReader::open(tmp.path(), &DatasetConfig::default()).unwrap();
+    assert!(reader.warnings()[0].contains("mapped as neighbours"));
+}
+
+#[test]
+fn a_gap_whose_frames_the_trajectory_does_not_number_is_an_error_naming_the_file() {
+    // Files numbered from 1, the .log's frame ids from 0: fine in order, but not with a gap.
+    let tmp = tempfile::tempdir().unwrap();
+    common::write_icl(tmp.path(), 1, 5, true);
+    assert!(IclReader::open(tmp.path(), &DatasetConfig::default()).is_ok());
+    delete_frame(tmp.path(), 3);
+    let err = icl_error(tmp.path());
+    let depth = tmp.path().join("depth/00005.png");
+    assert!(
+        err.starts_with(&format!(
+            "{}: frame 5 has no pose in {}; frames are missing from the folder (frame 3)",
+            depth.display(),
+            tmp.path().join("trajectory.log").display()
+        )),
+        "{err}"
+    );
+}
+
+#[test]
+fn colour_and_depth_of_different_frames_are_not_paired() {
+    // One colour and another frame's depth image gone: equal counts, shifted pairs.
+    let tmp = tempfile::tempdir().unwrap();
+    common::write_icl(tmp.path(), 0, 6, false);
+    std::fs::remove_file(tmp.path().join("color/00003.png")).unwrap();
+    std::fs::remove_file(tmp.path().join("depth/00004.png")).unwrap();
+    let err = icl_error(tmp.path());
+    assert!(
+        err.starts_with(&format!(
+            "{} is paired with {} by their sorted order, but their frame numbers differ",
+            tmp.path().join("color/00004.png").display(),
+            tmp.path().join("depth/00003.png").display()
+        )),
+        "{err}"
+    );
+}
