@@ -220,7 +220,26 @@ fn encode_into<W: Write>(inner: W, snapshot: &MapSnapshot, path: &Path) -> Resul
 /// # Errors
 /// [`CoreError::Io`] when unreadable, and those of [`map_file_from_bytes`].
 pub fn read_map_file(path: &Path) -> Result<MapSnapshot> {
-    let bytes = std::fs::read(path).map_err(|e| CoreError::io(path, e))?;
+    use std::io::Read;
+    let io = |e| CoreError::io(path, e);
+    let file = std::fs::File::open(path).map_err(io)?;
+    // Only a regular file has a size to trust: a stream or device (`/dev/zero`, a pipe) would be
+    // read until memory runs out.
+    let meta = file.metadata().map_err(io)?;
+    if !meta.is_file() {
+        return Err(CoreError::MapFile {
+            path: path.to_path_buf(),
+            reason: "not a regular file (a folder, device, pipe or socket): map files are read \
+                     from regular files only"
+                .into(),
+        });
+    }
+    let len = meta.len();
+    let mut bytes = Vec::with_capacity(usize::try_from(len).unwrap_or(0));
+    // No more than the size said when the file was opened (plus one byte to notice growth).
+    file.take(len.saturating_add(1))
+        .read_to_end(&mut bytes)
+        .map_err(io)?;
     map_file_from_bytes(&bytes, path)
 }
 
@@ -325,7 +344,7 @@ pub fn map_file_from_bytes(bytes: &[u8], path: &Path) -> Result<MapSnapshot> {
     let f32_at =
         |at: usize| f32::from_le_bytes([bytes[at], bytes[at + 1], bytes[at + 2], bytes[at + 3]]);
     let mut at = header_end;
-    let positions = (0..n)
+    let positions: Vec<[f32; 3]> = (0..n)
         .map(|i| {
             let p = at + i * 12;
             [f32_at(p), f32_at(p + 4), f32_at(p + 8)]
@@ -337,10 +356,32 @@ pub fn map_file_from_bytes(bytes: &[u8], path: &Path) -> Result<MapSnapshot> {
         .map(|c| [c[0], c[1], c[2]])
         .collect();
     at += n * 3;
-    let embeddings = bytes[at..at + n * dim * 4]
+    let embeddings: Vec<f32> = bytes[at..at + n * dim * 4]
         .chunks_exact(4)
         .map(|c| f32::from_le_bytes([c[0], c[1], c[2], c[3]]))
         .collect();
+    // A valid checksum over NaN or infinite values (written by a broken producer) still makes a
+    // map that answers every query with NaN: refused, naming the first bad row.
+    let bad_position = positions
+        .iter()
+        .position(|p: &[f32; 3]| !p.iter().all(|v| v.is_finite()));
+    let bad_embedding = (dim > 0)
+        .then(|| {
+            embeddings
+                .chunks_exact(dim)
+                .position(|row| !row.iter().all(|v| v.is_finite()))
+        })
+        .flatten();
+    if let Some(row) = bad_position {
+        return Err(fail(format!(
+            "point {row} has a position that is not finite (NaN or infinite)"
+        )));
+    }
+    if let Some(row) = bad_embedding {
+        return Err(fail(format!(
+            "point {row} has an embedding value that is not finite (NaN or infinite)"
+        )));
+    }
     Ok(MapSnapshot {
         map_kind: header.map_kind,
         dim,
@@ -354,6 +395,46 @@ pub fn map_file_from_bytes(bytes: &[u8], path: &Path) -> Result<MapSnapshot> {
 #[cfg(test)]
 mod tests {
     use super::*;
+
+    #[test]
+    fn non_finite_values_and_special_files_are_refused() {
+        let dir = tempfile::tempdir().unwrap();
+        let path = dir.path().join("m.vlem");
+        let good = MapSnapshot {
+            map_kind: "point-cloud".into(),
+            dim: 2,
+            positions: vec![[0.0, 1.0, 2.0], [1.0, 1.0, 1.0], [2.0, 0.0, 1.0]],
+            colours: vec![[1, 2, 3]; 3],
+            embeddings: vec![1.0, 0.0, 0.6, 0.8, 0.0, 1.0],
+            metadata: MapMetadata::default(),
+        };
+        write_map_file(&path, &good).unwrap();
+        assert_eq!(read_map_file(&path).unwrap().len(), 3);
+        let mut nan_position = good.clone();
+        nan_position.positions[1][2] = f32::NAN;
+        write_map_file(&path, &nan_position).unwrap();
+        let err = read_map_file(&path).unwrap_err().to_string();
+        assert!(
+            err.ends_with("point 1 has a position that is not finite (NaN or infinite)"),
+            "{err}"
+        );
+        let mut infinite = good.clone();
+        infinite.embeddings[5] = f32::INFINITY;
+        write_map_file(&path, &infinite).unwrap();
+        let err = read_map_file(&path).unwrap_err().to_string();
+        assert!(
+            err.contains("point 2 has an embedding value that is not finite"),
+            "{err}"
+        );
+        let err = read_map_file(dir.path()).unwrap_err().to_string();
+        assert!(err.contains("not a regular file"), "{err}");
+        if Path::new("/dev/zero").exists() {
+            let err = read_map_file(Path::new("/dev/zero"))
+                .unwrap_err()
+                .to_string();
+            assert!(err.contains("not a regular file"), "{err}");
+        }
+    }
 
     fn sample() -> MapSnapshot {
         MapSnapshot {
