@@ -226,3 +226,30 @@ fn missing_model_weights_name_the_files_and_how_to_get_them() {
     );
     assert!(!out.join("map.vlem").exists());
 }
+
+#[cfg(all(feature = "colour-names", feature = "point-cloud"))]
+#[test]
+fn query_texts_the_encoder_cannot_embed_fail_at_start_up() {
+    let tmp = tempfile::tempdir().unwrap();
+    let data = repo().join("data/living-room");
+    let err = run_fails(
+        tmp.path(),
+        &data,
+        "[query]\ntexts = [\"red\", \"coffee machine\"]",
+    );
+    assert!(
+        err.starts_with(
+            "error: [query] texts are answered after the run: cannot embed the query \"coffee machine\""
+        ),
+        "{err}"
+    );
+    // Refused before mapping: no output of a run.
+    assert!(!tmp.path().join("out/stats.json").exists());
+    // The segmenter's baseline too ("object" is no colour).
+    let err = run_fails(
+        tmp.path(),
+        &data,
+        "[query]\ntexts = [\"red\"]\n[query.segmenter]\nkind = \"argmax\"",
+    );
+    assert!(err.contains("\"object\""), "{err}");
+}

@@ -147,6 +147,16 @@ fn run(mut config: Config, ctx: BuildContext, out: &Path, options: &RunOptions<'
     let mut pipeline = Pipeline::from_config(&config, &ctx)?;
     // Built before mapping so a bad [query.segmenter] fails at start-up, not after the run.
     let segmenter = Registry::global()?.build_segmenter(&config.query.segmenter, &ctx)?;
+    // The run's own queries (and the segmenter's baseline) are embedded now, so a text the
+    // encoder cannot embed fails at start-up, not after an hour of mapping; the encoders keep
+    // the embeddings for the queries after the run.
+    if let Some(encoder) = pipeline.encoder()
+        && pipeline.live().has_map()
+        && !config.query.texts.is_empty()
+    {
+        vlem_query::answer::embed_texts(encoder, segmenter.as_ref(), &config.query.texts)
+            .context("[query] texts are answered after the run")?;
+    }
     let mut source = vlem_datasets::open(&config.dataset, &dataset_dir)?;
     // Before mapping, so an unwritable output folder, recording or port fails now rather than
     // after a long run.

@@ -73,6 +73,8 @@ struct Verdict {
     reference: Option<Sample>,
     /// Frame at which the warm-up ends (before the reference sample is taken).
     warmup_end: usize,
+    /// The last sample at which the map's storage grew by more than the tolerance (0: never).
+    storage_grew_at: usize,
     /// Lowest and highest resident memory from the reference sample on.
     rss_range: Option<(u64, u64)>,
     /// Every bound broken, in words; empty when the soak passed.
@@ -327,6 +329,7 @@ pub fn execute(args: &SoakArgs) -> Result<()> {
         "warmup": {
             "fraction": args.warmup,
             "map_full_at_frame": full_frame,
+            "storage_last_grew_at_frame": verdict.storage_grew_at,
             "ends_at_frame": verdict.warmup_end,
             "reference": verdict.reference,
         },
@@ -422,6 +425,12 @@ fn judge(
         ));
     }
     let by_fraction = (warmup * total as f64).ceil() as usize;
+    let storage_settled = samples
+        .windows(2)
+        .filter(|w| w[1].map_bytes as f64 > w[0].map_bytes as f64 * (1.0 + tolerance))
+        .map(|w| w[1].frame)
+        .max()
+        .unwrap_or(0);
     let Some(full) = full_frame else {
         failures.push(format!(
             "the map never reached its budget of {budget} (at most {max_elements} elements): \
@@ -430,16 +439,11 @@ fn judge(
         return Verdict {
             reference: None,
             warmup_end: by_fraction,
+            storage_grew_at: storage_settled,
             rss_range: None,
             failures,
         };
     };
-    let storage_settled = samples
-        .windows(2)
-        .filter(|w| w[1].map_bytes as f64 > w[0].map_bytes as f64 * (1.0 + tolerance))
-        .map(|w| w[1].frame)
-        .max()
-        .unwrap_or(0);
     let warmup_end = by_fraction.max(full + 1).max(storage_settled);
     let after: Vec<&Sample> = samples.iter().filter(|s| s.frame >= warmup_end).collect();
     if after.len() < 2 {
@@ -453,6 +457,7 @@ fn judge(
         return Verdict {
             reference: after.first().map(|s| **s),
             warmup_end,
+            storage_grew_at: storage_settled,
             rss_range: None,
             failures,
         };
@@ -485,6 +490,7 @@ fn judge(
     Verdict {
         reference: Some(reference),
         warmup_end,
+        storage_grew_at: storage_settled,
         rss_range: Some((lo, hi)),
         failures,
     }
