@@ -200,7 +200,7 @@ impl MissingFrames {
     pub(crate) fn warning(&self, dir: &Path, poses: bool) -> Option<String> {
         (self.count > 0).then(|| {
             format!(
-                "{}: {} missing (their colour and depth images are not there): {}",
+                "{}: {} missing (no colour or depth image has the number): {}",
                 dir.display(),
                 self.describe(),
                 if poses {
