@@ -162,17 +162,43 @@ pub fn map_file_bytes(snapshot: &MapSnapshot) -> Result<Vec<u8>> {
     )
 }
 
-/// Writes the whole file format into `inner` (errors name `path`) and returns it.
-fn encode_into<W: Write>(inner: W, snapshot: &MapSnapshot, path: &Path) -> Result<W> {
-    let io = |e| CoreError::io(path, e);
-    let header = Header {
+/// Streams the map file of `snapshot` into `writer` (a socket, a pipe) without building it in
+/// memory first, and returns the writer; [`map_file_len`] says beforehand how many bytes come.
+///
+/// # Errors
+/// An inconsistent snapshot, a header that cannot be encoded, or a failed write.
+pub fn write_map_to<W: Write>(writer: W, snapshot: &MapSnapshot) -> Result<W> {
+    snapshot.validate()?;
+    encode_into(writer, snapshot, Path::new("(stream)"))
+}
+
+/// The size in bytes of the map file of `snapshot` (for a `Content-Length`).
+///
+/// # Errors
+/// A header that cannot be encoded.
+pub fn map_file_len(snapshot: &MapSnapshot) -> Result<u64> {
+    let header = serde_json::to_vec(&header_of(snapshot)).map_err(|e| CoreError::MapFile {
+        path: PathBuf::from("(stream)"),
+        reason: format!("cannot encode header: {e}"),
+    })?;
+    let n = snapshot.len() as u64;
+    Ok(PREFIX_LEN as u64 + header.len() as u64 + n * 15 + n * snapshot.dim as u64 * 4 + 4)
+}
+
+fn header_of(snapshot: &MapSnapshot) -> Header {
+    Header {
         map_kind: snapshot.map_kind.clone(),
         points: snapshot.len() as u64,
         dim: snapshot.dim as u64,
         embedding_type: "f32".into(),
         metadata: snapshot.metadata.clone(),
-    };
-    let header = serde_json::to_vec(&header).map_err(|e| CoreError::MapFile {
+    }
+}
+
+/// Writes the whole file format into `inner` (errors name `path`) and returns it.
+fn encode_into<W: Write>(inner: W, snapshot: &MapSnapshot, path: &Path) -> Result<W> {
+    let io = |e| CoreError::io(path, e);
+    let header = serde_json::to_vec(&header_of(snapshot)).map_err(|e| CoreError::MapFile {
         path: path.to_path_buf(),
         reason: format!("cannot encode header: {e}"),
     })?;
@@ -395,6 +421,21 @@ pub fn map_file_from_bytes(bytes: &[u8], path: &Path) -> Result<MapSnapshot> {
 #[cfg(test)]
 mod tests {
     use super::*;
+
+    #[test]
+    fn a_streamed_map_file_is_the_file_and_its_length_is_known_beforehand() {
+        let snapshot = MapSnapshot {
+            map_kind: "voxel".into(),
+            dim: 2,
+            positions: vec![[0.0, 1.0, 2.0], [1.0, 1.0, 1.0]],
+            colours: vec![[1, 2, 3]; 2],
+            embeddings: vec![1.0, 0.0, 0.6, 0.8],
+            metadata: MapMetadata::default(),
+        };
+        let streamed = write_map_to(Vec::new(), &snapshot).unwrap();
+        assert_eq!(streamed, map_file_bytes(&snapshot).unwrap());
+        assert_eq!(map_file_len(&snapshot).unwrap(), streamed.len() as u64);
+    }
 
     #[test]
     fn non_finite_values_and_special_files_are_refused() {

@@ -17,7 +17,8 @@
 //! - `GET /heatmap.ply?text=...`: one text's heatmap as binary PLY;
 //! - `POST /snapshot`: save the map as it is into the run's output folder, under the next free
 //!   name `snapshot-NNNN.vlem` (the request names no path);
-//! - `GET /map.vlem`: the map as it is, as a map file in the response body.
+//! - `GET /map.vlem`: the map as it is, as a map file in the response body, encoded while it is
+//!   sent (one copy of the map per download, no encoded file in memory).
 
 pub mod api;
 mod client;

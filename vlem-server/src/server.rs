@@ -4,7 +4,7 @@
 //! (a bug) is caught and answered with 500, so no request can end the mapping run that owns the
 //! live map.
 
-use std::io::Read;
+use std::io::{Read, Write};
 use std::net::{SocketAddr, ToSocketAddrs};
 use std::panic::{AssertUnwindSafe, catch_unwind};
 use std::path::PathBuf;
@@ -14,7 +14,7 @@ use std::thread::JoinHandle;
 use std::time::Duration;
 
 use serde::Serialize;
-use tiny_http::{Header, Method, Request, Response, Server};
+use tiny_http::{Header, Method, Request, Response, Server, StatusCode};
 use vlem_core::BuildContext;
 use vlem_core::live::LiveMap;
 use vlem_query::QueryError;
@@ -228,11 +228,27 @@ fn serve(server: &Server, stop: &AtomicBool, handler: &Handler) {
     }
 }
 
+/// A reply's body: bytes in memory, or a stream of known length (a map file encoded while it is
+/// sent, so a download never holds the encoded file in memory).
+enum Body {
+    Bytes(Vec<u8>),
+    Stream {
+        reader: Box<dyn Read + Send>,
+        len: usize,
+    },
+}
+
+impl From<Vec<u8>> for Body {
+    fn from(bytes: Vec<u8>) -> Self {
+        Self::Bytes(bytes)
+    }
+}
+
 /// A reply before it is written: status, content type and body.
 struct Reply {
     status: u16,
     content_type: &'static str,
-    body: Vec<u8>,
+    body: Body,
     file_name: Option<String>,
     /// `WWW-Authenticate: Bearer` on a 401 (RFC 6750).
     challenge: bool,
@@ -244,7 +260,7 @@ impl Reply {
             Ok(body) => Self {
                 status,
                 content_type: "application/json",
-                body,
+                body: body.into(),
                 file_name: None,
                 challenge: false,
             },
@@ -260,17 +276,17 @@ impl Reply {
         Self {
             status,
             content_type: "application/json",
-            body,
+            body: body.into(),
             file_name: None,
             challenge: false,
         }
     }
 
-    fn binary(body: Vec<u8>, file_name: String) -> Self {
+    fn binary(body: impl Into<Body>, file_name: String) -> Self {
         Self {
             status: 200,
             content_type: "application/octet-stream",
-            body,
+            body: body.into(),
             file_name: Some(file_name),
             challenge: false,
         }
@@ -327,25 +343,37 @@ impl Handler {
             }
             Err(reply) => reply,
         };
-        let mut response = Response::from_data(reply.body).with_status_code(reply.status);
-        if let Ok(h) = Header::from_bytes("Content-Type", reply.content_type) {
-            response.add_header(h);
+        let mut headers = Vec::new();
+        headers.extend(Header::from_bytes("Content-Type", reply.content_type).ok());
+        if let Some(name) = &reply.file_name {
+            headers.extend(
+                Header::from_bytes(
+                    "Content-Disposition",
+                    format!("attachment; filename=\"{name}\""),
+                )
+                .ok(),
+            );
         }
-        if let Some(name) = reply.file_name
-            && let Ok(h) = Header::from_bytes(
-                "Content-Disposition",
-                format!("attachment; filename=\"{name}\""),
-            )
-        {
-            response.add_header(h);
+        if reply.challenge {
+            headers.extend(Header::from_bytes("WWW-Authenticate", "Bearer realm=\"vlem\"").ok());
         }
-        if reply.challenge
-            && let Ok(h) = Header::from_bytes("WWW-Authenticate", "Bearer realm=\"vlem\"")
-        {
-            response.add_header(h);
-        }
+        let status = StatusCode(reply.status);
         // The client may have gone; nothing to do about it here.
-        let _ = request.respond(response);
+        let _ = match reply.body {
+            Body::Bytes(bytes) => {
+                let len = bytes.len();
+                request.respond(Response::new(
+                    status,
+                    headers,
+                    std::io::Cursor::new(bytes),
+                    Some(len),
+                    None,
+                ))
+            }
+            Body::Stream { reader, len } => {
+                request.respond(Response::new(status, headers, reader, Some(len), None))
+            }
+        };
     }
 
     fn route(&self, method: &Method, url: &str, body: &[u8]) -> Reply {
@@ -566,11 +594,39 @@ impl Handler {
             }
             Err(e) => return Reply::error(500, e.to_string()),
         };
-        match vlem_core::mapfile::map_file_bytes(&snapshot) {
-            Ok(bytes) => Reply::binary(bytes, "map.vlem".into()),
+        match stream_map_file(snapshot) {
+            Ok(body) => Reply::binary(body, "map.vlem".into()),
             Err(e) => Reply::error(500, e.to_string()),
         }
     }
+}
+
+/// The map file of `snapshot` as a stream: a thread encodes it into a pipe while the response
+/// reads the other end, so a download holds the snapshot (one copy of the map, taken under the
+/// read lock) and a pipe's buffer, never the encoded file. A client that goes away closes the
+/// pipe, which ends the encoding thread.
+fn stream_map_file(snapshot: vlem_core::MapSnapshot) -> vlem_core::Result<Body> {
+    let len = vlem_core::mapfile::map_file_len(&snapshot)?;
+    let len = usize::try_from(len).map_err(|_| vlem_core::CoreError::MapFile {
+        path: "map.vlem".into(),
+        reason: "larger than this platform can address".into(),
+    })?;
+    let (reader, writer) =
+        std::io::pipe().map_err(|e| vlem_core::CoreError::io("(map download pipe)", e))?;
+    std::thread::Builder::new()
+        .name("vlem-map-download".into())
+        .spawn(move || {
+            let writer = std::io::BufWriter::with_capacity(1 << 16, writer);
+            // A failed write is the client leaving; the response side reports nothing more.
+            if let Ok(mut writer) = vlem_core::mapfile::write_map_to(writer, &snapshot) {
+                let _ = writer.flush();
+            }
+        })
+        .map_err(|e| vlem_core::CoreError::io("(map download thread)", e))?;
+    Ok(Body::Stream {
+        reader: Box::new(reader),
+        len,
+    })
 }
 
 /// Snapshots one output folder takes (`snapshot-0001.vlem` … `snapshot-9999.vlem`).
