@@ -199,3 +199,39 @@ fn a_few_frames_give_a_map_that_text_queries_score() {
         previous = Some(scores.clone());
     }
 }
+
+/// The real-time SAM + CLIP GPU config: poses estimated, SAM ViT-B with the refinement, and on the
+/// CPU (devices switched, the tiny CLIP) it gets as far as SAM's weights, which it names.
+#[cfg(feature = "sam")]
+#[test]
+fn realtime_cuda_sam_clip_config_names_its_gpu_and_its_weights() {
+    let mut config = Config::from_file(&configs().join("realtime-cuda-sam-clip.toml")).unwrap();
+    assert_eq!(config.tracker.kind, "frame-to-model");
+    let proposer = config.proposer.as_mut().unwrap();
+    assert_eq!(proposer.params["variant"].as_str(), Some("vit-b"));
+    assert_eq!(proposer.params["refine"].as_bool(), Some(true));
+    let ctx = BuildContext {
+        config_dir: configs(),
+        embedding_dim: None,
+    };
+    let encoder = config.encoder.as_mut().unwrap();
+    encoder.params.insert(
+        "model_dir".into(),
+        "../vlem-backends/goldens/clip/tiny-quick-gelu".into(),
+    );
+    if !cfg!(feature = "cuda") {
+        let err = Pipeline::from_config(&config, &ctx)
+            .err()
+            .unwrap()
+            .to_string();
+        assert!(err.contains("\"cuda"), "{err}");
+    }
+    for stage in [config.encoder.as_mut(), config.proposer.as_mut()] {
+        stage.unwrap().params.insert("device".into(), "cpu".into());
+    }
+    let err = Pipeline::from_config(&config, &ctx)
+        .err()
+        .unwrap()
+        .to_string();
+    assert!(err.contains("sam_vit_b.safetensors"), "{err}");
+}

@@ -156,3 +156,33 @@ fn realtime_cpu_dinov3_config_builds_with_a_model_folder() {
         ],
     );
 }
+
+/// The real-time NARADIO GPU config: its poses are estimated, a build without `cuda` says what
+/// was asked for, and on the CPU (its device key switched, the tiny model) it builds as it is.
+#[cfg(all(feature = "naradio", feature = "point-cloud"))]
+#[test]
+fn realtime_cuda_naradio_config_asks_for_the_gpu_it_names() {
+    let mut config = Config::from_file(&configs().join("realtime-cuda-naradio.toml")).unwrap();
+    assert_eq!(config.tracker.kind, "frame-to-model");
+    assert_eq!(config.pipeline.mode, vlem_core::config::Mode::RealTime);
+    let ctx = BuildContext {
+        config_dir: configs(),
+        embedding_dim: None,
+    };
+    let encoder = config.encoder.as_mut().unwrap();
+    encoder.params.insert(
+        "model_dir".into(),
+        "../vlem-backends/goldens/naradio/tiny".into(),
+    );
+    if !cfg!(feature = "cuda") {
+        let err = Pipeline::from_config(&config, &ctx)
+            .err()
+            .unwrap()
+            .to_string();
+        assert!(err.contains("device = \"cuda:0\" was asked for"), "{err}");
+    }
+    let encoder = config.encoder.as_mut().unwrap();
+    encoder.params.insert("device".into(), "cpu".into());
+    let pipeline = Pipeline::from_config(&config, &ctx).unwrap();
+    assert_eq!(pipeline.tracker().name(), "frame-to-model");
+}

@@ -2,7 +2,8 @@
 # The device check of the `cuda` feature, on a machine with one NVIDIA GPU, its driver, CUDA 13
 # and PyTorch (with transformers) but no Rust toolchain and no network. Everything it runs was
 # built elsewhere by bench/gpu/build.sh into target/gpu-check/, which is carried over with the
-# working tree. From the repository root, within 8 minutes on an H200:
+# working tree. From the repository root; parts 1-3 as first run took about 6 minutes on an H200,
+# parts 3 and 4 have grown since and are not yet timed (select parts to fit the lease):
 #
 #   bench/gpu/check.sh [OUT_DIR]           # default target/gpu-check-out
 #   VLEM_GPU_CHECK_PARTS="1 3" bench/gpu/check.sh   # only some of the parts below
@@ -18,7 +19,9 @@
 #    embedding stages) and with `[pipeline] stages = "serial"`, each one's embedding rate in
 #    frames per second (e2e.json, e2e-serial.json); then the same stages offline, every frame
 #    embedded, overlapped and serial (e2e-offline.json, e2e-offline-serial.json), whose per-stage
-#    busy times and waits say which stage sets the rate.
+#    busy times and waits say which stage sets the rate;
+# 4. one real-time run of configs/realtime-cuda-naradio.toml (NARADIO B/16, random weights, the
+#    full 640x480, frame-to-model poses): the embedding and tracking rates (e2e-naradio.json).
 # The summary is OUT_DIR/summary.txt; every log is beside it. Exit status: the number of failed
 # parts (0: all passed).
 set -uo pipefail
@@ -33,7 +36,7 @@ SUMMARY=$OUT/summary.txt
 say() { echo "$*" | tee -a "$SUMMARY"; }
 failed=0
 start=$SECONDS
-PARTS=" ${VLEM_GPU_CHECK_PARTS:-1 2 3} "
+PARTS=" ${VLEM_GPU_CHECK_PARTS:-1 2 3 4} "
 wanted() { [[ $PARTS == *" $1 "* ]]; }
 
 if [ ! -f "$PACKED/payload.tar.xz" ]; then
@@ -171,6 +174,32 @@ PY
             failed=$((failed + 1))
         fi
     done
+fi
+if wanted 4; then
+    say "== 4. end to end: NARADIO B/16 at 640x480 on the GPU, frame-to-model poses ($((SECONDS - start)) s so far)"
+    model=/tmp/naradio-b-random
+    [ -f "$model/config.json" ] || python3 bench/naradio/make_random.py --size b "$model" >/dev/null
+    sed "s|^model_dir = .*|model_dir = \"$model\"|" configs/realtime-cuda-naradio.toml \
+        >"$OUT/realtime-cuda-naradio.toml"
+    if timeout 180 "$G/bin/vlem" run --config "$OUT/realtime-cuda-naradio.toml" \
+        --dataset "$G/data/icl-livingroom1" --out "$OUT/e2e-naradio" --no-colour-model \
+        >"$OUT/e2e-naradio.log" 2>&1; then
+        python3 - "$OUT/e2e-naradio/stats.json" <<'PY' | tee "$OUT/e2e-naradio.json" | tee -a "$SUMMARY"
+import json, sys
+s = json.load(open(sys.argv[1]))
+f, wall = s["frames"], s["wall_seconds"]
+print(json.dumps({
+    "frames": f["total"], "tracked": f["tracked"], "embedded": f["processed"],
+    "skipped": f["skipped"], "lost": f["lost"], "wall_s": round(wall, 2),
+    "embedding_rate_fps": round(f["processed"] / wall, 2),
+    "mean_ms": {k: round(v, 1) for k, v in s["mean_ms"].items()},
+    "busy_ms": {k: round(v["busy"]["total_ms"]) for k, v in s.get("stage_load", {}).items()},
+}))
+PY
+    else
+        say "   FAILED: $(tail -n 3 "$OUT/e2e-naradio.log" | tr '\n' ' ')"
+        failed=$((failed + 1))
+    fi
 fi
 say "== done in $((SECONDS - start)) s, $failed part(s) failed"
 exit "$failed"
