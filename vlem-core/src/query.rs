@@ -107,16 +107,16 @@ pub fn check_texts(values: usize, dim: usize, texts: &[&[f32]]) -> Result<()> {
 }
 
 /// Rows scored against `texts` texts: `score(row, scores)` fills one row's score per text, and
-/// the scores land in `out[t][row]`. Blocks of rows run in parallel on large tables; each block
-/// gathers its rows' scores in a small row-major buffer and scatters them per text, so no text's
-/// output is shared between threads.
+/// the scores land in `out[t][row]`. Blocks of rows run in parallel on large tables, each writing
+/// its own slice of every text's output, so no output is shared between threads and nothing is
+/// gathered and copied afterwards.
 pub fn for_each_row_scored(
     rows: usize,
     texts: usize,
     out: &mut Vec<Vec<f32>>,
     score: impl Fn(usize, &mut [f32]) + Sync,
 ) {
-    /// Rows per block: a block's buffer (rows × texts) stays in the L1/L2 cache.
+    /// Rows per block: a block writes one contiguous 4 KiB run of each text's scores.
     const BLOCK: usize = 1024;
     out.resize_with(texts, Vec::new);
     for scores in out.iter_mut() {
@@ -126,28 +126,29 @@ pub fn for_each_row_scored(
     if texts == 0 || rows == 0 {
         return;
     }
-    let blocks = rows.div_ceil(BLOCK);
-    let block_scores = |b: usize| {
-        let start = b * BLOCK;
-        let end = (start + BLOCK).min(rows);
-        let mut buffer = vec![0.0f32; (end - start) * texts];
-        for (i, scores) in buffer.chunks_exact_mut(texts).enumerate() {
-            score(start + i, scores);
+    // Block b's slice of every text's output.
+    let mut blocks: Vec<Vec<&mut [f32]>> = (0..rows.div_ceil(BLOCK))
+        .map(|_| Vec::with_capacity(texts))
+        .collect();
+    for scores in out.iter_mut() {
+        for (block, slice) in blocks.iter_mut().zip(scores.chunks_mut(BLOCK)) {
+            block.push(slice);
         }
-        (start, buffer)
-    };
-    let mut place = |(start, buffer): (usize, Vec<f32>)| {
-        for (i, scores) in buffer.chunks_exact(texts).enumerate() {
-            for (t, &s) in scores.iter().enumerate() {
-                out[t][start + i] = s;
+    }
+    let run = |(b, mut slices): (usize, Vec<&mut [f32]>)| {
+        let mut row_scores = vec![0.0f32; texts];
+        let len = slices.first().map_or(0, |s| s.len());
+        for i in 0..len {
+            score(b * BLOCK + i, &mut row_scores);
+            for (slice, &s) in slices.iter_mut().zip(&row_scores) {
+                slice[i] = s;
             }
         }
     };
     if rows >= PARALLEL_MIN_POINTS {
-        let done: Vec<_> = (0..blocks).into_par_iter().map(block_scores).collect();
-        done.into_iter().for_each(&mut place);
+        blocks.into_par_iter().enumerate().for_each(run);
     } else {
-        (0..blocks).map(block_scores).for_each(place);
+        blocks.into_iter().enumerate().for_each(run);
     }
 }
 
