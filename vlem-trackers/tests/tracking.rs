@@ -177,6 +177,14 @@ fn bad_parameters_are_refused_by_name() {
             "iterations",
         ),
         (
+            // Ran for minutes a frame before it was refused.
+            OdometryConfig {
+                iterations: vec![100_000_000, 1, 1],
+                ..OdometryConfig::default()
+            },
+            "iterations",
+        ),
+        (
             OdometryConfig {
                 depth_max: -1.0,
                 ..OdometryConfig::default()

@@ -95,6 +95,10 @@ impl Default for OdometryConfig {
     }
 }
 
+/// Gauss-Newton iterations one pyramid level may ask for: the defaults are 10, 5 and 3, and
+/// each iteration is a pass over the level, so more than this runs for minutes a frame.
+pub const MAX_ITERATIONS: usize = 1000;
+
 impl OdometryConfig {
     /// Checks every parameter; the error names the first bad one.
     ///
@@ -114,6 +118,15 @@ impl OdometryConfig {
             return bad(
                 "iterations",
                 "the finest level (the last entry) needs at least one iteration".into(),
+            );
+        }
+        if let Some(&many) = self.iterations.iter().find(|&&n| n > MAX_ITERATIONS) {
+            return bad(
+                "iterations",
+                format!(
+                    "at most {MAX_ITERATIONS} per pyramid level (each is a pass over the frame), \
+                     got {many}"
+                ),
             );
         }
         let positive = [

@@ -98,6 +98,11 @@ impl Default for TsdfConfig {
     }
 }
 
+/// The finest TSDF voxel accepted (1 mm): finer, a frame's blocks number in the millions.
+pub const MIN_VOXEL_SIZE: f32 = 0.001;
+/// The coarsest TSDF voxel accepted (1 m).
+pub const MAX_VOXEL_SIZE: f32 = 1.0;
+
 impl TsdfConfig {
     /// Checks every parameter.
     ///
@@ -112,6 +117,16 @@ impl TsdfConfig {
                 "voxel_size",
                 format!(
                     "must be a positive number of metres, got {}",
+                    self.voxel_size
+                ),
+            );
+        }
+        if !(MIN_VOXEL_SIZE..=MAX_VOXEL_SIZE).contains(&self.voxel_size) {
+            return fail(
+                "voxel_size",
+                format!(
+                    "must lie in {MIN_VOXEL_SIZE}–{MAX_VOXEL_SIZE} m (a finer grid allocates \
+                     blocks without bound, a coarser one is no model of a room), got {}",
                     self.voxel_size
                 ),
             );

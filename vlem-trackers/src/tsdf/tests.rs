@@ -958,6 +958,21 @@ fn bad_config_values_are_refused_naming_the_parameter() {
                 ..d
             },
         ),
+        (
+            // Ran for minutes without progress before it was refused.
+            "voxel_size",
+            TsdfConfig {
+                voxel_size: 0.00001,
+                ..d
+            },
+        ),
+        (
+            "voxel_size",
+            TsdfConfig {
+                voxel_size: 2.0,
+                ..d
+            },
+        ),
     ];
     for (name, config) in cases {
         let err = TsdfVolume::new(config).unwrap_err();
