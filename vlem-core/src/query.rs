@@ -21,20 +21,7 @@ pub fn normalised_similarity(
     text: &[f32],
     out: &mut Vec<f32>,
 ) -> Result<()> {
-    if text.len() != dim || dim == 0 {
-        return Err(CoreError::DimensionMismatch {
-            what: "query embedding".into(),
-            expected: dim,
-            actual: text.len(),
-        });
-    }
-    if !embeddings.len().is_multiple_of(dim) {
-        return Err(CoreError::DimensionMismatch {
-            what: "map embedding table (length modulo dim)".into(),
-            expected: 0,
-            actual: embeddings.len() % dim,
-        });
-    }
+    check_texts(embeddings.len(), dim, &[text])?;
     let n = embeddings.len() / dim;
     out.clear();
     out.resize(n, 0.0);

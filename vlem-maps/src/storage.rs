@@ -12,8 +12,8 @@ use half::f16;
 use half::slice::HalfFloatSliceExt;
 use rayon::prelude::*;
 use serde::Deserialize;
+use vlem_core::Result;
 use vlem_core::query::dot;
-use vlem_core::{CoreError, Result};
 
 /// Storage type of the embeddings of a map (`precision = "f32"` or `"f16"` in `[map]`).
 #[derive(Clone, Copy, Debug, Default, Deserialize, PartialEq, Eq)]
@@ -249,30 +249,17 @@ impl EmbeddingStore {
     /// The paper's normalised similarity `(text . e + 1) / 2` of every row, into `out`.
     ///
     /// # Errors
-    /// [`CoreError::DimensionMismatch`] when `text` is not `dim` long.
+    /// [`vlem_core::CoreError::DimensionMismatch`] when `text` is not `dim` long.
     pub fn similarity(&self, text: &[f32], out: &mut Vec<f32>) -> Result<()> {
         match &self.values {
             Values::F32(v) => vlem_core::query::normalised_similarity(v, self.dim, text, out),
             Values::F16(v) => {
-                if text.len() != self.dim || self.dim == 0 {
-                    return Err(CoreError::DimensionMismatch {
-                        what: "query embedding".into(),
-                        expected: self.dim,
-                        actual: text.len(),
-                    });
-                }
+                vlem_core::query::check_texts(v.len(), self.dim, &[text])?;
                 let d = self.dim;
                 out.clear();
                 out.resize(v.len() / d, 0.0);
                 let score = |(s, row): (&mut f32, &[f16])| {
-                    let mut wide = [0.0f32; 64];
-                    let mut acc = 0.0;
-                    for (chunk, t) in row.chunks(64).zip(text.chunks(64)) {
-                        let wide = &mut wide[..chunk.len()];
-                        chunk.convert_to_f32_slice(wide);
-                        acc += dot(wide, t);
-                    }
-                    *s = (acc + 1.0) * 0.5;
+                    f16_row_scores(row, &[text], std::slice::from_mut(s));
                 };
                 if out.len() >= PARALLEL_MIN_ROWS {
                     out.par_iter_mut()
@@ -293,7 +280,7 @@ impl EmbeddingStore {
     /// and, in f16, widened once), `out[t]` bit for bit what `similarity(texts[t])` gives.
     ///
     /// # Errors
-    /// [`CoreError::DimensionMismatch`] when a text is not `dim` long.
+    /// [`vlem_core::CoreError::DimensionMismatch`] when a text is not `dim` long.
     pub fn similarity_many(&self, texts: &[&[f32]], out: &mut Vec<Vec<f32>>) -> Result<()> {
         match &self.values {
             Values::F32(v) => vlem_core::query::normalised_similarity_many(v, self.dim, texts, out),
@@ -304,26 +291,29 @@ impl EmbeddingStore {
                     v.len() / d,
                     texts.len(),
                     out,
-                    |r, scores| {
-                        let row = &v[r * d..(r + 1) * d];
-                        let mut wide = [0.0f32; 64];
-                        scores.fill(0.0);
-                        // The same 64-value chunks, summed in the same order, as `similarity`.
-                        for (c, chunk) in row.chunks(64).enumerate() {
-                            let wide = &mut wide[..chunk.len()];
-                            chunk.convert_to_f32_slice(wide);
-                            for (s, text) in scores.iter_mut().zip(texts) {
-                                *s += dot(wide, &text[c * 64..c * 64 + chunk.len()]);
-                            }
-                        }
-                        for s in scores.iter_mut() {
-                            *s = (*s + 1.0) * 0.5;
-                        }
-                    },
+                    |r, scores| f16_row_scores(&v[r * d..(r + 1) * d], texts, scores),
                 );
                 Ok(())
             }
         }
+    }
+}
+
+/// `(text . row + 1) / 2` of one f16 row for each of `texts` (all `row.len()` long), into
+/// `scores`: the row is widened 64 values at a time, once for all texts, and each text's dot
+/// product summed over those chunks in order, so one text and several score alike, bit for bit.
+fn f16_row_scores(row: &[f16], texts: &[&[f32]], scores: &mut [f32]) {
+    let mut wide = [0.0f32; 64];
+    scores.fill(0.0);
+    for (c, chunk) in row.chunks(64).enumerate() {
+        let wide = &mut wide[..chunk.len()];
+        chunk.convert_to_f32_slice(wide);
+        for (s, text) in scores.iter_mut().zip(texts) {
+            *s += dot(wide, &text[c * 64..c * 64 + chunk.len()]);
+        }
+    }
+    for s in scores.iter_mut() {
+        *s = (*s + 1.0) * 0.5;
     }
 }
 

@@ -102,6 +102,28 @@ pub struct EmbeddedTexts {
     pub baseline: Option<Vec<f32>>,
 }
 
+impl EmbeddedTexts {
+    /// Every embedding to score in one pass: the texts', then the baseline's.
+    fn all(&self) -> Vec<&[f32]> {
+        self.embeddings
+            .iter()
+            .chain(&self.baseline)
+            .map(Vec::as_slice)
+            .collect()
+    }
+
+    /// The scores of one pass over [`EmbeddedTexts::all`], split back into the texts' and the
+    /// baseline's.
+    fn split(&self, mut scores: Vec<Vec<f32>>) -> QueryScores {
+        let baseline = self.baseline.as_ref().and_then(|_| scores.pop());
+        QueryScores {
+            queries: self.texts.clone(),
+            scores,
+            baseline,
+        }
+    }
+}
+
 /// Embeds `texts`, and the baseline `segmenter` asks for, with `encoder`.
 ///
 /// # Errors
@@ -173,20 +195,14 @@ fn check_dim(map_dim: usize, encoder: &dyn Encoder) -> Result<()> {
 /// # Errors
 /// [`QueryError::EncoderDimension`] when `texts` were embedded in another dimension than the map's.
 pub fn score_snapshot(snapshot: &MapSnapshot, texts: &EmbeddedTexts) -> Result<QueryScores> {
-    let all: Vec<&[f32]> = texts
-        .embeddings
-        .iter()
-        .chain(&texts.baseline)
-        .map(Vec::as_slice)
-        .collect();
     let mut scores = Vec::new();
-    normalised_similarity_many(&snapshot.embeddings, snapshot.dim, &all, &mut scores)?;
-    let baseline = texts.baseline.as_ref().and_then(|_| scores.pop());
-    Ok(QueryScores {
-        queries: texts.texts.clone(),
-        scores,
-        baseline,
-    })
+    normalised_similarity_many(
+        &snapshot.embeddings,
+        snapshot.dim,
+        &texts.all(),
+        &mut scores,
+    )?;
+    Ok(texts.split(scores))
 }
 
 /// Scores the live map as it is after a whole number of frames, holding its read lock for one
@@ -197,21 +213,11 @@ pub fn score_snapshot(snapshot: &MapSnapshot, texts: &EmbeddedTexts) -> Result<Q
 pub fn score_live(live: &LiveMap, texts: &EmbeddedTexts) -> Result<Scored> {
     // Every text and the baseline in one pass over the map: the read lock (which integration
     // waits for) is held for one pass, however many texts a query has.
-    let all: Vec<&[f32]> = texts
-        .embeddings
-        .iter()
-        .chain(&texts.baseline)
-        .map(Vec::as_slice)
-        .collect();
+    let all = texts.all();
     live.read(|view| -> Result<Scored> {
         let mut scored = Vec::new();
         view.map.similarity_many(&all, &mut scored)?;
-        let baseline = texts.baseline.as_ref().and_then(|_| scored.pop());
-        let scores = QueryScores {
-            queries: texts.texts.clone(),
-            scores: scored,
-            baseline,
-        };
+        let scores = texts.split(scored);
         Ok(Scored {
             positions: view.map.coloured_points().vertices,
             scores,
