@@ -77,11 +77,6 @@ impl Access {
         Self { port, token }
     }
 
-    /// Whether a token is required (the 401 answer then carries `WWW-Authenticate`).
-    pub(crate) fn has_token(&self) -> bool {
-        self.token.is_some()
-    }
-
     /// Passes a request, or says why not. The token is checked first, so a client without it
     /// learns nothing else about the server.
     pub(crate) fn check(&self, head: &RequestHead<'_>) -> Result<(), Refusal> {
@@ -400,7 +395,6 @@ mod tests {
     fn a_token_is_required_when_set_and_replaces_the_host_check() {
         let token = "0123456789abcdef0123";
         let access = Access::new(8765, Some(token.into()));
-        assert!(access.has_token());
         let with = |authorization, host| RequestHead {
             authorization,
             ..head(host)

@@ -250,8 +250,6 @@ struct Reply {
     content_type: &'static str,
     body: Body,
     file_name: Option<String>,
-    /// `WWW-Authenticate: Bearer` on a 401 (RFC 6750).
-    challenge: bool,
 }
 
 impl Reply {
@@ -262,7 +260,6 @@ impl Reply {
                 content_type: "application/json",
                 body: body.into(),
                 file_name: None,
-                challenge: false,
             },
             Err(e) => Self::error(500, format!("cannot encode the answer: {e}")),
         }
@@ -278,7 +275,6 @@ impl Reply {
             content_type: "application/json",
             body: body.into(),
             file_name: None,
-            challenge: false,
         }
     }
 
@@ -288,7 +284,6 @@ impl Reply {
             content_type: "application/octet-stream",
             body: body.into(),
             file_name: Some(file_name),
-            challenge: false,
         }
     }
 }
@@ -321,11 +316,9 @@ impl Handler {
             content_type: header(request, "Content-Type"),
             authorization: header(request, "Authorization"),
         };
-        self.access.check(&head).map_err(|refusal| {
-            let mut reply = Reply::error(refusal.status, refusal.message);
-            reply.challenge = refusal.status == 401 && self.access.has_token();
-            reply
-        })
+        self.access
+            .check(&head)
+            .map_err(|refusal| Reply::error(refusal.status, refusal.message))
     }
 
     fn respond(&self, mut request: Request) {
@@ -354,7 +347,8 @@ impl Handler {
                 .ok(),
             );
         }
-        if reply.challenge {
+        // Only a server with a token answers 401, with its scheme (RFC 6750).
+        if reply.status == 401 {
             headers.extend(Header::from_bytes("WWW-Authenticate", "Bearer realm=\"vlem\"").ok());
         }
         let status = StatusCode(reply.status);
