@@ -15,6 +15,8 @@
 // Link the crates whose stages the config names (registrations of unreferenced crates vanish).
 use vlem_backends as _;
 use vlem_maps as _;
+
+mod common;
 use vlem_trackers as _;
 
 use std::path::PathBuf;
@@ -22,6 +24,9 @@ use std::path::PathBuf;
 use vlem_core::pipeline::Pipeline;
 use vlem_core::types::valid_depth;
 use vlem_core::{BuildContext, Config, Registry};
+
+/// The tiny CLIP folder of the goldens, relative to `configs/`.
+const TINY_CLIP: &str = "../vlem-backends/goldens/clip/tiny-quick-gelu";
 
 fn configs() -> PathBuf {
     PathBuf::from(env!("CARGO_MANIFEST_DIR")).join("configs")
@@ -81,10 +86,7 @@ fn realtime_cpu_config_builds_with_a_model_folder() {
         .to_string();
     assert!(err.contains("clip-vit-base-patch16"), "{err}");
     let encoder = config.encoder.as_mut().unwrap();
-    encoder.params.insert(
-        "model_dir".into(),
-        "../vlem-backends/goldens/clip/tiny-quick-gelu".into(),
-    );
+    encoder.params.insert("model_dir".into(), TINY_CLIP.into());
     let pipeline = Pipeline::from_config(&config, &ctx).unwrap();
     assert_eq!(pipeline.encoder().unwrap().name(), "clip");
 }
@@ -93,24 +95,7 @@ fn realtime_cpu_config_builds_with_a_model_folder() {
 /// on the CPU (its device key switched) it builds as it is.
 #[test]
 fn realtime_cuda_config_asks_for_the_gpu_it_names() {
-    let mut config = Config::from_file(&configs().join("realtime-cuda-clip.toml")).unwrap();
-    let ctx = BuildContext {
-        config_dir: configs(),
-        embedding_dim: None,
-    };
-    let encoder = config.encoder.as_mut().unwrap();
-    encoder.params.insert(
-        "model_dir".into(),
-        "../vlem-backends/goldens/clip/tiny-quick-gelu".into(),
-    );
-    if !cfg!(feature = "cuda") {
-        let err = Pipeline::from_config(&config, &ctx)
-            .err()
-            .unwrap()
-            .to_string();
-        assert!(err.contains("device = \"cuda:0\" was asked for"), "{err}");
-        assert!(err.contains("--features cuda"), "{err}");
-    }
+    let (mut config, ctx) = common::gpu_config("realtime-cuda-clip.toml", TINY_CLIP);
     let encoder = config.encoder.as_mut().unwrap();
     encoder.params.insert("device".into(), "cpu".into());
     let pipeline = Pipeline::from_config(&config, &ctx).unwrap();
@@ -205,27 +190,11 @@ fn a_few_frames_give_a_map_that_text_queries_score() {
 #[cfg(feature = "sam")]
 #[test]
 fn realtime_cuda_sam_clip_config_names_its_gpu_and_its_weights() {
-    let mut config = Config::from_file(&configs().join("realtime-cuda-sam-clip.toml")).unwrap();
+    let (mut config, ctx) = common::gpu_config("realtime-cuda-sam-clip.toml", TINY_CLIP);
     assert_eq!(config.tracker.kind, "frame-to-model");
-    let proposer = config.proposer.as_mut().unwrap();
+    let proposer = config.proposer.as_ref().unwrap();
     assert_eq!(proposer.params["variant"].as_str(), Some("vit-b"));
     assert_eq!(proposer.params["refine"].as_bool(), Some(true));
-    let ctx = BuildContext {
-        config_dir: configs(),
-        embedding_dim: None,
-    };
-    let encoder = config.encoder.as_mut().unwrap();
-    encoder.params.insert(
-        "model_dir".into(),
-        "../vlem-backends/goldens/clip/tiny-quick-gelu".into(),
-    );
-    if !cfg!(feature = "cuda") {
-        let err = Pipeline::from_config(&config, &ctx)
-            .err()
-            .unwrap()
-            .to_string();
-        assert!(err.contains("\"cuda"), "{err}");
-    }
     for stage in [config.encoder.as_mut(), config.proposer.as_mut()] {
         stage.unwrap().params.insert("device".into(), "cpu".into());
     }

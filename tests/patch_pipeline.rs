@@ -17,6 +17,8 @@
 // Link the crates whose stages the config names (registrations of unreferenced crates vanish).
 use vlem_backends as _;
 use vlem_maps as _;
+
+mod common;
 use vlem_trackers as _;
 
 use std::path::PathBuf;
@@ -162,25 +164,12 @@ fn realtime_cpu_dinov3_config_builds_with_a_model_folder() {
 #[cfg(all(feature = "naradio", feature = "point-cloud"))]
 #[test]
 fn realtime_cuda_naradio_config_asks_for_the_gpu_it_names() {
-    let mut config = Config::from_file(&configs().join("realtime-cuda-naradio.toml")).unwrap();
+    let (mut config, ctx) = common::gpu_config(
+        "realtime-cuda-naradio.toml",
+        "../vlem-backends/goldens/naradio/tiny",
+    );
     assert_eq!(config.tracker.kind, "frame-to-model");
     assert_eq!(config.pipeline.mode, vlem_core::config::Mode::RealTime);
-    let ctx = BuildContext {
-        config_dir: configs(),
-        embedding_dim: None,
-    };
-    let encoder = config.encoder.as_mut().unwrap();
-    encoder.params.insert(
-        "model_dir".into(),
-        "../vlem-backends/goldens/naradio/tiny".into(),
-    );
-    if !cfg!(feature = "cuda") {
-        let err = Pipeline::from_config(&config, &ctx)
-            .err()
-            .unwrap()
-            .to_string();
-        assert!(err.contains("device = \"cuda:0\" was asked for"), "{err}");
-    }
     let encoder = config.encoder.as_mut().unwrap();
     encoder.params.insert("device".into(), "cpu".into());
     let pipeline = Pipeline::from_config(&config, &ctx).unwrap();

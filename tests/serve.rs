@@ -11,12 +11,11 @@
 
 mod common;
 
-use std::io::{BufRead, BufReader};
 use std::path::Path;
-use std::process::{Child, Command, Stdio};
+use std::process::{Child, Command};
 use std::time::{Duration, Instant};
 
-use common::{ok, repo};
+use common::{ok, repo, spawn_serving};
 
 /// A `vlem run --serve 127.0.0.1:0 --serve-after` child, killed on drop.
 struct Served {
@@ -33,33 +32,12 @@ impl Drop for Served {
 
 /// Starts the demo config with a server and returns once the server's address is printed.
 fn serve(out: &Path, extra: &[&str]) -> Served {
-    let mut child = Command::new(env!("CARGO_BIN_EXE_vlem"))
-        .args(["run", "--config", "configs/demo.toml", "--out"])
-        .arg(out)
-        .args(["--serve", "127.0.0.1:0", "--serve-after"])
-        .args(extra)
-        .current_dir(repo())
-        .stdout(Stdio::null())
-        .stderr(Stdio::piped())
-        .spawn()
-        .unwrap();
-    let stderr = child.stderr.take().unwrap();
-    let (tx, rx) = std::sync::mpsc::channel();
-    std::thread::spawn(move || {
-        for line in BufReader::new(stderr).lines().map_while(Result::ok) {
-            if let Some(rest) = line.split("serving the live map on http://").nth(1) {
-                let address = rest
-                    .split_whitespace()
-                    .next()
-                    .unwrap_or_default()
-                    .to_owned();
-                let _ = tx.send(address);
-            }
-        }
-    });
-    let address = rx
-        .recv_timeout(Duration::from_secs(60))
-        .expect("vlem run prints the address it serves on");
+    let mut args = vec!["run", "--config", "configs/demo.toml", "--out"];
+    let out = out.to_str().unwrap();
+    args.push(out);
+    args.extend(["--serve", "127.0.0.1:0", "--serve-after"]);
+    args.extend(extra);
+    let (child, address) = spawn_serving(&args);
     Served { child, address }
 }
 

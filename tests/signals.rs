@@ -12,9 +12,8 @@
 
 mod common;
 
-use std::io::{BufRead, BufReader};
 use std::path::Path;
-use std::process::{Child, Command, Stdio};
+use std::process::{Child, Command};
 use std::time::{Duration, Instant};
 
 use common::repo;
@@ -38,35 +37,16 @@ fn config(dir: &Path, rate: Option<f64>) -> std::path::PathBuf {
 
 /// `vlem run ... --serve 127.0.0.1:0 [extra]` and the address it serves on.
 fn start(config: &Path, out: &Path, extra: &[&str]) -> (Child, String) {
-    let mut child = Command::new(env!("CARGO_BIN_EXE_vlem"))
-        .arg("run")
-        .arg("--config")
-        .arg(config)
-        .arg("--out")
-        .arg(out)
-        .args(["--no-colour-model", "--serve", "127.0.0.1:0"])
-        .args(extra)
-        .current_dir(repo())
-        .stdout(Stdio::null())
-        .stderr(Stdio::piped())
-        .spawn()
-        .unwrap();
-    let stderr = child.stderr.take().unwrap();
-    let (tx, rx) = std::sync::mpsc::channel();
-    std::thread::spawn(move || {
-        for line in BufReader::new(stderr).lines().map_while(Result::ok) {
-            if let Some(rest) = line.split("serving the live map on http://").nth(1) {
-                let _ = tx.send(
-                    rest.split_whitespace()
-                        .next()
-                        .unwrap_or_default()
-                        .to_owned(),
-                );
-            }
-        }
-    });
-    let address = rx.recv_timeout(Duration::from_secs(60)).unwrap();
-    (child, address)
+    let mut args = vec![
+        "run".as_ref(),
+        "--config".as_ref(),
+        config.as_os_str(),
+        "--out".as_ref(),
+        out.as_os_str(),
+    ];
+    args.extend(["--no-colour-model", "--serve", "127.0.0.1:0"].map(std::ffi::OsStr::new));
+    args.extend(extra.iter().map(std::ffi::OsStr::new));
+    common::spawn_serving(&args)
 }
 
 fn status(address: &str) -> serde_json::Value {

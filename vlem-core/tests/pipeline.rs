@@ -169,6 +169,21 @@ fn recorder(dim: usize) -> Box<dyn EmbeddingMap> {
 
 fn no_progress(_: Progress) {}
 
+/// Runs `p` over `frames` test planes without poses, until it ends or fails.
+fn run_planes(
+    p: &mut Pipeline,
+    frames: usize,
+) -> vlem_core::Result<vlem_core::pipeline::RunReport> {
+    p.run(
+        &mut Planes {
+            frames,
+            poses: false,
+        },
+        None,
+        &no_progress,
+    )
+}
+
 /// The still tracker, the fake 2-d encoder and a recording map, offline.
 fn offline_pipeline() -> Pipeline {
     Pipeline::new(
@@ -329,16 +344,7 @@ fn an_encoder_error_stops_the_run_and_is_reported() {
         PipelineConfig::default(),
     )
     .unwrap();
-    let err = p
-        .run(
-            &mut Planes {
-                frames: 1000,
-                poses: false,
-            },
-            None,
-            &no_progress,
-        )
-        .unwrap_err();
+    let err = run_planes(&mut p, 1000).unwrap_err();
     assert_eq!(
         err.to_string(),
         "encode of frame 3: invalid pixel embeddings: fake encoder failure"
@@ -796,16 +802,7 @@ fn a_failing_proposer_or_map_names_its_stage_and_frame_and_keeps_the_map_so_far(
             calls: Mutex::new(0),
         };
         let mut p = regions_pipeline(Box::new(proposer), recorder(2), layout);
-        let err = p
-            .run(
-                &mut Planes {
-                    frames: 100,
-                    poses: false,
-                },
-                None,
-                &no_progress,
-            )
-            .unwrap_err();
+        let err = run_planes(&mut p, 100).unwrap_err();
         assert_eq!(
             err.to_string(),
             "propose of frame 4: pipeline worker failed: proposer failure"
@@ -820,16 +817,7 @@ fn a_failing_proposer_or_map_names_its_stage_and_frame_and_keeps_the_map_so_far(
             fail_at: 6,
         };
         let mut p = regions_pipeline(Box::new(Corner), Box::new(map), layout);
-        let err = p
-            .run(
-                &mut Planes {
-                    frames: 100,
-                    poses: false,
-                },
-                None,
-                &no_progress,
-            )
-            .unwrap_err();
+        let err = run_planes(&mut p, 100).unwrap_err();
         assert_eq!(
             err.to_string(),
             "integrate of frame 6: pipeline worker failed: map failure"
