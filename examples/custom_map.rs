@@ -160,8 +160,8 @@ impl EmbeddingMap for LatestVoxelMap {
         self.embeddings.similarity(text, out)
     }
 
-    fn snapshot(&self) -> MapSnapshot {
-        MapSnapshot {
+    fn snapshot(&self) -> vlem_core::Result<MapSnapshot> {
+        Ok(MapSnapshot {
             map_kind: NAME.into(),
             dim: self.dim,
             positions: self.positions.clone(),
@@ -171,7 +171,7 @@ impl EmbeddingMap for LatestVoxelMap {
                 frames_integrated: self.frames,
                 ..MapMetadata::default()
             },
-        }
+        })
     }
 }
 
@@ -220,7 +220,7 @@ fn main() -> Result<()> {
         "query \"{query}\": best score {:.3} at voxel {} ({:?})",
         best.1,
         best.0,
-        map.snapshot().positions[best.0]
+        map.snapshot()?.positions[best.0]
     );
     Ok(())
 }

@@ -96,8 +96,8 @@ fn realtime_cpu_config_builds_with_a_model_folder() {
 #[test]
 fn realtime_cuda_config_asks_for_the_gpu_it_names() {
     let (mut config, ctx) = common::gpu_config("realtime-cuda-clip.toml", TINY_CLIP);
-    let encoder = config.encoder.as_mut().unwrap();
-    encoder.params.insert("device".into(), "cpu".into());
+    assert_eq!(config.tracker.kind, "frame-to-model");
+    common::on_the_cpu(&mut config);
     let pipeline = Pipeline::from_config(&config, &ctx).unwrap();
     assert_eq!(pipeline.encoder().unwrap().name(), "clip");
 }
@@ -195,9 +195,7 @@ fn realtime_cuda_sam_clip_config_names_its_gpu_and_its_weights() {
     let proposer = config.proposer.as_ref().unwrap();
     assert_eq!(proposer.params["variant"].as_str(), Some("vit-b"));
     assert_eq!(proposer.params["refine"].as_bool(), Some(true));
-    for stage in [config.encoder.as_mut(), config.proposer.as_mut()] {
-        stage.unwrap().params.insert("device".into(), "cpu".into());
-    }
+    common::on_the_cpu(&mut config);
     let err = Pipeline::from_config(&config, &ctx)
         .err()
         .unwrap()

@@ -170,8 +170,7 @@ fn realtime_cuda_naradio_config_asks_for_the_gpu_it_names() {
     );
     assert_eq!(config.tracker.kind, "frame-to-model");
     assert_eq!(config.pipeline.mode, vlem_core::config::Mode::RealTime);
-    let encoder = config.encoder.as_mut().unwrap();
-    encoder.params.insert("device".into(), "cpu".into());
+    common::on_the_cpu(&mut config);
     let pipeline = Pipeline::from_config(&config, &ctx).unwrap();
     assert_eq!(pipeline.tracker().name(), "frame-to-model");
 }

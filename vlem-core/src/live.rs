@@ -110,6 +110,12 @@ pub struct RunStatus {
     pub frames_skipped: usize,
     /// Map elements after the last integration.
     pub map_len: usize,
+    /// Host bytes of the map after the last integration.
+    #[serde(default)]
+    pub map_host_bytes: usize,
+    /// Device bytes of the map (its embedding table with `[map] device = "cuda"`), 0 on the host.
+    #[serde(default)]
+    pub map_device_bytes: usize,
     /// The tracker's latest pose.
     pub latest_pose: Option<PoseStamp>,
 }
@@ -120,6 +126,8 @@ impl LiveMap {
         encoder: Option<Arc<dyn Encoder>>,
     ) -> Self {
         let map_len = map.as_ref().map_or(0, |m| m.len());
+        let map_host_bytes = map.as_ref().map_or(0, |m| m.memory_bytes());
+        let map_device_bytes = map.as_ref().map_or(0, |m| m.device_memory_bytes());
         Self {
             shared: Arc::new(Shared {
                 map: map.map(|map| {
@@ -136,6 +144,8 @@ impl LiveMap {
                 }),
                 status: Mutex::new(RunStatus {
                     map_len,
+                    map_host_bytes,
+                    map_device_bytes,
                     ..RunStatus::default()
                 }),
             }),
@@ -194,15 +204,15 @@ impl LiveMap {
     pub fn snapshot(&self) -> Result<MapSnapshot> {
         let metadata = self.metadata();
         let mut snapshot = self.read(|view| {
-            let mut snapshot = view.map.snapshot();
+            let mut snapshot = view.map.snapshot()?;
             // Maps count their frames themselves (restored ones included); one that does not
             // gets this pipeline's count.
             snapshot.metadata.frames_integrated = snapshot
                 .metadata
                 .frames_integrated
                 .max(view.frames_integrated);
-            snapshot
-        })?;
+            Ok(snapshot)
+        })??;
         snapshot.metadata = MapMetadata {
             frames_integrated: snapshot.metadata.frames_integrated,
             ..metadata

@@ -198,8 +198,10 @@ pub struct MapStats {
     pub points: usize,
     /// Embedding dimension.
     pub dim: usize,
-    /// Bytes of map storage.
+    /// Host bytes of map storage.
     pub bytes: usize,
+    /// Device bytes of map storage (`[map] device = "cuda"`), 0 for a map on the host.
+    pub device_bytes: usize,
 }
 
 impl MapStats {
@@ -210,6 +212,7 @@ impl MapStats {
             points: map.len(),
             dim: map.dim(),
             bytes: map.memory_bytes(),
+            device_bytes: map.device_memory_bytes(),
         }
     }
 }
@@ -240,6 +243,9 @@ pub struct RunStats {
     pub map: Option<MapStats>,
     /// Peak resident memory of the process, where the platform reports it.
     pub peak_resident_bytes: Option<u64>,
+    /// Peak device memory in use during the run, as the driver reports it for the GPUs the
+    /// config names (`None` when it names none); the front-end that samples it sets it.
+    pub peak_device_bytes: Option<u64>,
 }
 
 impl RunReport {
@@ -277,6 +283,7 @@ impl RunReport {
             warnings: self.source_warnings.clone(),
             map: map.map(MapStats::of),
             peak_resident_bytes,
+            peak_device_bytes: None,
         }
     }
 
@@ -724,7 +731,7 @@ fn embedding_stages<'a>(
                 embeddings,
             } = work;
             // The write lock covers exactly one integration: readers see whole frames only.
-            let map_len = live.write(|state| -> Result<usize> {
+            let (map_len, host_bytes, device_bytes) = live.write(|state| -> Result<_> {
                 let _: IntegrationStats = state.map.integrate(&Observation {
                     frame,
                     pose,
@@ -732,11 +739,17 @@ fn embedding_stages<'a>(
                 })?;
                 state.frames_integrated += 1;
                 state.last_frame = Some(frame.index);
-                Ok(state.map.len())
+                Ok((
+                    state.map.len(),
+                    state.map.memory_bytes(),
+                    state.map.device_memory_bytes(),
+                ))
             })??;
             live.update_status(|status| {
                 status.frames_integrated += 1;
                 status.map_len = map_len;
+                status.map_host_bytes = host_bytes;
+                status.map_device_bytes = device_bytes;
             });
             // Only this stage writes, so the map read now is the one just integrated.
             if let Some(map) = live.map_read() {

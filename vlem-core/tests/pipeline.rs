@@ -148,8 +148,8 @@ impl EmbeddingMap for Recorder {
         out.clear();
         Ok(())
     }
-    fn snapshot(&self) -> MapSnapshot {
-        MapSnapshot::default()
+    fn snapshot(&self) -> vlem_core::Result<MapSnapshot> {
+        Ok(MapSnapshot::default())
     }
 }
 
@@ -731,8 +731,8 @@ impl EmbeddingMap for FailingMap {
     fn similarity(&self, q: &[f32], out: &mut Vec<f32>) -> vlem_core::Result<()> {
         self.inner.similarity(q, out)
     }
-    fn snapshot(&self) -> MapSnapshot {
-        MapSnapshot::default()
+    fn snapshot(&self) -> vlem_core::Result<MapSnapshot> {
+        Ok(MapSnapshot::default())
     }
 }
 

@@ -46,6 +46,12 @@ pub enum MapError {
         /// Depth width and height.
         depth: (u32, u32),
     },
+    /// The device in `[map] device` could not be opened, or a tensor operation on it failed.
+    #[error(transparent)]
+    Device(#[from] vlem_backends::BackendError),
+    /// A tensor operation of the device table failed (device memory, a driver error).
+    #[error("the map's device table: {0}")]
+    DeviceTable(String),
 }
 
 impl MapError {

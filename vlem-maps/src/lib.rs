@@ -20,6 +20,13 @@ pub mod voxel;
 
 pub use error::MapError;
 
+/// What [`map_config!`] expands to, reachable from crates that use it without naming
+/// `vlem-backends` themselves; not API.
+#[doc(hidden)]
+pub mod __private {
+    pub use vlem_backends::ComputeDevice;
+}
+
 vlem_core::feature_hint!(Map, "point-cloud", "point-cloud");
 vlem_core::feature_hint!(Map, "voxel", "voxel");
 vlem_core::feature_hint!(Map, "segment", "segment");

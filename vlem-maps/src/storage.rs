@@ -4,7 +4,15 @@
 //! from f16's limits, so the ranking of points for a query is kept (tested below). Arithmetic always
 //! happens in `f32`: rows are widened into a scratch buffer, updated and narrowed back.
 
+#[cfg(feature = "candle")]
+mod device;
+mod table;
 mod wide;
+
+pub(crate) use table::Table;
+
+#[cfg(feature = "candle")]
+pub use device::{CHUNK_ROWS, DeviceTable, FrameTable, Lookups};
 
 use half::f16;
 // Slice conversions use the CPU's F16C instructions where present (detected at run time);

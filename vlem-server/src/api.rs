@@ -50,8 +50,11 @@ pub struct MapStatus {
     pub points: usize,
     /// Embedding dimension.
     pub dim: usize,
-    /// Bytes of map storage.
+    /// Host bytes of map storage.
     pub bytes: usize,
+    /// Device bytes of map storage (`[map] device = "cuda"`), 0 for a map on the host.
+    #[serde(default)]
+    pub device_bytes: usize,
     /// Frames integrated.
     pub frames_integrated: usize,
 }

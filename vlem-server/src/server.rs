@@ -399,6 +399,7 @@ impl Handler {
                 points: view.map.len(),
                 dim: view.map.dim(),
                 bytes: view.map.memory_bytes(),
+                device_bytes: view.map.device_memory_bytes(),
                 frames_integrated: view.frames_integrated,
             })
             .ok();

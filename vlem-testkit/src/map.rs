@@ -85,7 +85,9 @@ pub fn integrate(map: &mut dyn EmbeddingMap, frame: &Frame, pose: &Pose, e: &Pix
 
 /// Asserts every embedding of the map's snapshot is finite and unit-norm, and positions finite.
 pub fn assert_well_formed(map: &dyn EmbeddingMap) {
-    let snap = map.snapshot();
+    let snap = map
+        .snapshot()
+        .unwrap_or_else(|e| panic!("the map's snapshot failed: {e}"));
     assert_eq!(snap.len(), map.len(), "snapshot and len() disagree");
     assert_eq!(snap.dim, map.dim());
     assert!(
@@ -123,7 +125,7 @@ pub fn check_budget(build: MapFactory) {
     }
     assert_well_formed(map.as_ref());
     assert!(
-        map.memory_bytes() >= map.len() * DIM * 4,
+        map.memory_bytes() + map.device_memory_bytes() >= map.len() * DIM * 4,
         "memory report below the stored embeddings"
     );
 }
@@ -146,10 +148,14 @@ pub fn check_invalid_depth(build: MapFactory) {
     assert_well_formed(map.as_ref());
     let all_invalid =
         DepthImage::new(64, 48, vec![f32::NAN; 64 * 48]).unwrap_or_else(|e| unreachable(e));
-    let before = map.snapshot();
+    let before = map
+        .snapshot()
+        .unwrap_or_else(|e| panic!("the map's snapshot failed: {e}"));
     frame.depth = all_invalid;
     integrate(map.as_mut(), &frame, &Pose::identity(), &e);
-    let after = map.snapshot();
+    let after = map
+        .snapshot()
+        .unwrap_or_else(|e| panic!("the map's snapshot failed: {e}"));
     assert!(
         after.positions == before.positions && after.embeddings == before.embeddings,
         "a frame without valid depth changed the map"
@@ -177,7 +183,9 @@ pub fn check_static_convergence(build: MapFactory) {
     let mut scores = Vec::new();
     map.similarity(&left, &mut scores)
         .unwrap_or_else(|e| unreachable(e));
-    let snap = map.snapshot();
+    let snap = map
+        .snapshot()
+        .unwrap_or_else(|e| panic!("the map's snapshot failed: {e}"));
     // Points on the left half (x < 0 in the camera = map frame) match the left segment.
     for (p, s) in snap.positions.iter().zip(&scores) {
         if p[0] < -0.1 {
@@ -208,7 +216,9 @@ pub fn check_save_load(build: MapFactory) {
             &e,
         );
     }
-    let snap = map.snapshot();
+    let snap = map
+        .snapshot()
+        .unwrap_or_else(|e| panic!("the map's snapshot failed: {e}"));
     let points = map.coloured_points();
     assert!(
         points.vertices == snap.positions && points.colours == snap.colours,
@@ -230,7 +240,9 @@ pub fn check_save_load(build: MapFactory) {
     let mut fresh = build(DIM, 100_000);
     match fresh.restore(loaded) {
         Ok(()) => {
-            let restored = fresh.snapshot();
+            let restored = fresh
+                .snapshot()
+                .unwrap_or_else(|e| panic!("the map's snapshot failed: {e}"));
             assert!(
                 restored.positions == snap.positions && restored.embeddings == snap.embeddings,
                 "restoring a saved map changed it"
@@ -251,12 +263,16 @@ pub fn check_outside_view_untouched(build: MapFactory) {
         &Pose::identity(),
         &half_segments(&frame, 0),
     );
-    let before = map.snapshot();
+    let before = map
+        .snapshot()
+        .unwrap_or_else(|e| panic!("the map's snapshot failed: {e}"));
     // Turn around: the plane is now behind the camera.
     let back = pose(0.0, 0.0, 0.0, std::f64::consts::PI);
     let frame = plane_frame(1, 2.0);
     integrate(map.as_mut(), &frame, &back, &half_segments(&frame, 4));
-    let after = map.snapshot();
+    let after = map
+        .snapshot()
+        .unwrap_or_else(|e| panic!("the map's snapshot failed: {e}"));
     let old: std::collections::HashMap<[u32; 3], usize> = after
         .positions
         .iter()

@@ -500,7 +500,9 @@ pub fn check_state(map: &dyn EmbeddingMap, dim: usize, budget: usize) -> CheckRe
         map.len()
     );
     ensure!(map.dim() == dim, "{name}: dim() {} != {dim}", map.dim());
-    let snap = map.snapshot();
+    let snap = map
+        .snapshot()
+        .unwrap_or_else(|e| panic!("the map's snapshot failed: {e}"));
     ensure!(
         snap.len() == map.len(),
         "{name}: snapshot has {} points, len() {}",
@@ -577,7 +579,10 @@ pub fn run_scenario(
         let pose = spec.pose();
         let unchanged = spec.observes_nothing(dim);
         for step in 0..spec.repeat.max(1) {
-            let before = unchanged.then(|| map.snapshot());
+            let before = unchanged.then(|| {
+                map.snapshot()
+                    .unwrap_or_else(|e| panic!("the map's snapshot failed: {e}"))
+            });
             let obs = Observation {
                 frame: &frame,
                 pose: &pose,
@@ -590,7 +595,11 @@ pub fn run_scenario(
                 .map_err(|e| format!("after frame {index} (repeat {step}, {stats:?}): {e}"))?;
             if let Some(before) = before {
                 ensure!(
-                    same_elements(&before, &map.snapshot()),
+                    same_elements(
+                        &before,
+                        &map.snapshot()
+                            .unwrap_or_else(|e| panic!("the map's snapshot failed: {e}"))
+                    ),
                     "frame {index} observes nothing but changed the map ({stats:?})"
                 );
             }
@@ -623,7 +632,9 @@ pub fn check_round_trip(
     budget: usize,
 ) -> Result<Option<Box<dyn EmbeddingMap>>, String> {
     let name = map.name();
-    let snap = map.snapshot();
+    let snap = map
+        .snapshot()
+        .unwrap_or_else(|e| panic!("the map's snapshot failed: {e}"));
     let path = temp_map_path(name);
     let written = vlem_core::write_map_file(&path, &snap);
     let loaded = written.and_then(|_| vlem_core::read_map_file(&path));
@@ -639,7 +650,9 @@ pub fn check_round_trip(
         Err(CoreError::Unsupported { .. }) => return Ok(None),
         Err(e) => return Err(format!("{name}: restoring its own snapshot failed: {e}")),
     }
-    let restored = fresh.snapshot();
+    let restored = fresh
+        .snapshot()
+        .unwrap_or_else(|e| panic!("the map's snapshot failed: {e}"));
     if restored != snap {
         let first = (0..snap.len().max(restored.len())).find(|&i| {
             snap.positions.get(i) != restored.positions.get(i)

@@ -15,16 +15,12 @@ use serde::{Deserialize, Deserializer};
 
 use crate::error::BackendError;
 
-// Opening a device needs candle: every candle backend brings it, and `cuda` alone does too.
-#[cfg(any(
-    feature = "clip",
-    feature = "dinov3",
-    feature = "naradio",
-    feature = "sam",
-    feature = "label-text",
-    feature = "cuda"
-))]
+// Opening a device needs candle: every candle backend brings it, and `candle` alone does too.
+mod memory;
+#[cfg(feature = "candle")]
 mod open;
+
+pub use memory::DeviceMemoryPeak;
 
 /// How to get a build that can run on a GPU, for the messages that say this one cannot.
 pub const CUDA_BUILD_HINT: &str = "build vlem with `--features cuda` (README, \"On an NVIDIA \
@@ -85,6 +81,15 @@ pub fn kernels_compute_capability() -> Option<&'static str> {
 }
 
 impl ComputeDevice {
+    /// The error for asking a build without the `cuda` feature for this device.
+    pub fn not_in_this_build(self) -> BackendError {
+        BackendError::DeviceUnavailable {
+            asked: self.to_string(),
+            found: "this build of vlem has no CUDA support (the `cuda` feature is off)".to_owned(),
+            hint: CUDA_BUILD_HINT.to_owned(),
+        }
+    }
+
     /// The device named by the environment variable `name` (benchmarks' and tests' switch);
     /// [`ComputeDevice::Cpu`] when it is unset or empty.
     ///

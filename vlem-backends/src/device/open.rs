@@ -22,11 +22,7 @@ impl ComputeDevice {
 
 #[cfg(not(feature = "cuda"))]
 fn open_cuda(asked: ComputeDevice, _index: usize) -> Result<candle_core::Device, BackendError> {
-    Err(BackendError::DeviceUnavailable {
-        asked: asked.to_string(),
-        found: "this build of vlem has no CUDA support (the `cuda` feature is off)".to_owned(),
-        hint: super::CUDA_BUILD_HINT.to_owned(),
-    })
+    Err(asked.not_in_this_build())
 }
 
 #[cfg(feature = "cuda")]

@@ -68,8 +68,15 @@ pub trait EmbeddingMap: Send + Sync {
         self.len() == 0
     }
 
-    /// Bytes of map storage (positions, colours, embeddings and indices), for memory reports.
+    /// Host bytes of map storage (positions, colours, embeddings and indices), for memory
+    /// reports; what the map keeps on a device is [`EmbeddingMap::device_memory_bytes`].
     fn memory_bytes(&self) -> usize;
+
+    /// Device bytes the map has allocated (its embedding table with `[map] device = "cuda"`); 0
+    /// (the default) for a map that keeps everything in host memory.
+    fn device_memory_bytes(&self) -> usize {
+        0
+    }
 
     /// The map's element budget, `None` (the default) for a map without one.
     fn budget(&self) -> Option<MapBudget> {
@@ -99,17 +106,24 @@ pub trait EmbeddingMap: Send + Sync {
     }
 
     /// Every element as point, colour and embedding, for saving and querying.
-    fn snapshot(&self) -> MapSnapshot;
+    ///
+    /// # Errors
+    /// A map whose embeddings live on a device fails when copying them to the host fails.
+    fn snapshot(&self) -> Result<MapSnapshot>;
 
     /// Every element's position and colour, without embeddings: what a viewer draws while the
     /// map grows. The default takes them from [`EmbeddingMap::snapshot`]; maps override it to
     /// skip copying the embeddings.
+    /// A snapshot that fails draws nothing this time (the viewer asks again at the next frame;
+    /// saves report the error themselves).
     fn coloured_points(&self) -> ColouredMesh {
-        let snapshot = self.snapshot();
-        ColouredMesh {
-            vertices: snapshot.positions,
-            colours: snapshot.colours,
-            triangles: Vec::new(),
+        match self.snapshot() {
+            Ok(snapshot) => ColouredMesh {
+                vertices: snapshot.positions,
+                colours: snapshot.colours,
+                triangles: Vec::new(),
+            },
+            Err(_) => ColouredMesh::default(),
         }
     }
 

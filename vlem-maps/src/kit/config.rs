@@ -1,4 +1,5 @@
-//! The `[map]` parameters every map has (`dim`, `max_depth`, `pixel_stride`, `precision`), their
+//! The `[map]` parameters every map has (`dim`, `max_depth`, `pixel_stride`, `precision`,
+//! `device`), their
 //! defaults and their validation, and [`map_config!`](crate::map_config) that declares a map's
 //! config with them.
 //!
@@ -8,6 +9,7 @@
 //! (`PointCloudConfig { precision, ..Default::default() }`, `[map] max_depth = 4`), unknown keys
 //! are still refused, and the docs, defaults and checks of the shared fields exist only here.
 
+use vlem_backends::ComputeDevice;
 use vlem_core::CoreError;
 
 use super::checks::{invalid_parameter, positive_metres, resolve_dim};
@@ -30,6 +32,8 @@ pub struct MapCommon {
     pub pixel_stride: u32,
     /// Embedding storage.
     pub precision: Precision,
+    /// Where the embedding table lives.
+    pub device: ComputeDevice,
 }
 
 impl Default for MapCommon {
@@ -39,6 +43,7 @@ impl Default for MapCommon {
             max_depth: DEFAULT_MAX_DEPTH,
             pixel_stride: DEFAULT_PIXEL_STRIDE,
             precision: Precision::default(),
+            device: ComputeDevice::Cpu,
         }
     }
 }
@@ -52,7 +57,29 @@ impl MapCommon {
     /// [`MapError::InvalidParameter`](crate::MapError::InvalidParameter) (wrapped as a stage
     /// error) for a `max_depth` that is not a positive number, a `pixel_stride` of 0, or a `dim`
     /// that disagrees with the encoder.
+    /// A `device` other than `"cpu"` is refused with [`CoreError::Unsupported`]: maps that keep
+    /// their table on a device check with [`MapCommon::validate_for_device`] instead.
     pub fn validate(&self, map: &str, encoder_dim: Option<usize>) -> Result<usize, CoreError> {
+        if self.device != ComputeDevice::Cpu {
+            return Err(CoreError::Unsupported {
+                implementation: format!("the {map} map"),
+                capability: "`device` other than \"cpu\" (the point-cloud and voxel maps keep \
+                             their embeddings on a GPU)",
+            });
+        }
+        self.validate_for_device(map, encoder_dim)
+    }
+
+    /// [`MapCommon::validate`] for a map that honours `device` (opening the device is the map's
+    /// build step).
+    ///
+    /// # Errors
+    /// As [`MapCommon::validate`], without the device check.
+    pub fn validate_for_device(
+        &self,
+        map: &str,
+        encoder_dim: Option<usize>,
+    ) -> Result<usize, CoreError> {
         positive_metres(map, "max_depth", self.max_depth)?;
         if self.pixel_stride == 0 {
             return Err(invalid_parameter(map, "pixel_stride", "must be at least 1"));
@@ -62,7 +89,7 @@ impl MapCommon {
 }
 
 /// Declares a map's `[map]` config: a struct with the shared fields of [`MapCommon`] (`dim`,
-/// `max_depth`, `pixel_stride`, `precision`, documented and defaulted here) and the map's own
+/// `max_depth`, `pixel_stride`, `precision`, `device`, documented and defaulted here) and the map's own
 /// fields, each with its default after `=`:
 ///
 /// ```
@@ -112,6 +139,9 @@ macro_rules! map_config {
             /// Embedding storage, `"f32"` (default) or `"f16"` (half the bytes, same query
             /// ranking).
             pub precision: $crate::storage::Precision,
+            /// Where the embedding table lives: `"cpu"` (default), `"cuda"` or `"cuda:N"` (the
+            /// point-cloud and voxel maps, in a build with the `cuda` feature).
+            pub device: $crate::__private::ComputeDevice,
         }
 
         impl ::core::default::Default for $name {
@@ -123,6 +153,7 @@ macro_rules! map_config {
                     max_depth: common.max_depth,
                     pixel_stride: common.pixel_stride,
                     precision: common.precision,
+                    device: common.device,
                 }
             }
         }
@@ -135,6 +166,7 @@ macro_rules! map_config {
                     max_depth: self.max_depth,
                     pixel_stride: self.pixel_stride,
                     precision: self.precision,
+                    device: self.device,
                 }
             }
         }

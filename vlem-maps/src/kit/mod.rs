@@ -5,7 +5,7 @@
 //! each had their own copy of the same config fields with their checks, and of the loop that
 //! back-projects a frame's valid pixels. Here they are written once:
 //! - [`map_config!`](crate::map_config) declares a map's `[map]` config with the shared
-//!   parameters of [`MapCommon`] (`dim`, `max_depth`, `pixel_stride`, `precision`), whose
+//!   parameters of [`MapCommon`] (`dim`, `max_depth`, `pixel_stride`, `precision`, `device`), whose
 //!   [`MapCommon::validate`] checks them and resolves the embedding dimension;
 //! - [`FramePixels`] iterates the valid, in-range, embedded pixels of a frame in world
 //!   coordinates ([`Pixel`]), and [`embedding`] looks a pixel's embedding up;

@@ -35,7 +35,15 @@ use crate::kit::{
     FramePixels, at_least_one, check_observation, check_snapshot, embedding, invalid_parameter,
     positive_metres, unit_weight,
 };
-use crate::storage::{EmbeddingStore, fuse_into};
+#[cfg(feature = "candle")]
+use crate::storage::{DeviceTable, FrameTable, Lookups};
+use crate::storage::{EmbeddingStore, Table, fuse_into};
+
+/// A frame's embeddings as uploaded to a device table (nothing in a build without one).
+#[cfg(feature = "candle")]
+type Uploaded<'a> = FrameTable<'a>;
+#[cfg(not(feature = "candle"))]
+type Uploaded<'a> = std::marker::PhantomData<&'a ()>;
 
 /// The registered name.
 pub const NAME: &str = "point-cloud";
@@ -69,8 +77,16 @@ impl PointCloudConfig {
     ///
     /// # Errors
     /// [`MapError::InvalidParameter`] (wrapped as a stage error) for out-of-range values and for a
-    /// `dim` that disagrees with the encoder.
+    /// `dim` that disagrees with the encoder; a stage error naming the device when `device` cannot
+    /// be opened (a build without `cuda`, no driver, no such GPU) or cannot hold the table.
     pub fn build(&self, encoder_dim: Option<usize>) -> Result<PointCloudMap, CoreError> {
+        let dim = self.validate(encoder_dim)?;
+        let table = Table::open(NAME, self.device, dim, self.precision, self.max_points)?;
+        Ok(PointCloudMap::with_table(self.clone(), dim, table))
+    }
+
+    /// Checks the parameters; returns the embedding dimension.
+    fn validate(&self, encoder_dim: Option<usize>) -> Result<usize, CoreError> {
         at_least_one(NAME, "max_points", self.max_points)?;
         positive_metres(NAME, "max_distance", self.max_distance)?;
         unit_weight(NAME, "map_weight", self.map_weight)?;
@@ -81,8 +97,31 @@ impl PointCloudConfig {
                 &format!("must be at most {MAX_WINDOW} pixels"),
             ));
         }
-        let dim = self.common().validate(NAME, encoder_dim)?;
-        Ok(PointCloudMap::new(self.clone(), dim))
+        self.common().validate_for_device(NAME, encoder_dim)
+    }
+
+    /// [`PointCloudConfig::build`] with the embedding table on the candle device `device`,
+    /// whatever `device` the config names: how the tests run the device table on candle's CPU.
+    ///
+    /// # Errors
+    /// As [`PointCloudConfig::build`]; a stage error when the device cannot hold the table.
+    #[cfg(feature = "candle")]
+    pub fn build_on(
+        &self,
+        encoder_dim: Option<usize>,
+        device: &candle_core::Device,
+    ) -> Result<PointCloudMap, CoreError> {
+        let dim = self.validate(encoder_dim)?;
+        if dim == 0 {
+            return Ok(PointCloudMap::new(self.clone(), 0));
+        }
+        let table = DeviceTable::new(device, dim, self.precision, self.max_points)
+            .map_err(|e| e.into_core(StageKind::Map, NAME))?;
+        Ok(PointCloudMap::with_table(
+            self.clone(),
+            dim,
+            Table::Device(table),
+        ))
     }
 }
 
@@ -104,7 +143,7 @@ pub struct PointCloudMap {
     dim: usize,
     positions: Vec<[f32; 3]>,
     colours: Vec<[u8; 3]>,
-    embeddings: EmbeddingStore,
+    embeddings: Table,
     /// Current downsampling resolution in metres (0 until the budget was first exceeded). It only
     /// grows, so the density of the map never rises again once bounded.
     voxel_size: f32,
@@ -167,10 +206,16 @@ fn round_colour(x: f32) -> u8 {
 }
 
 impl PointCloudMap {
-    /// An empty map (use [`PointCloudConfig::build`] for validated parameters).
+    /// An empty map with its table in host memory, whatever `device` the config names (use
+    /// [`PointCloudConfig::build`] for validated parameters and the configured device).
     pub fn new(config: PointCloudConfig, dim: usize) -> Self {
+        let table = Table::Host(EmbeddingStore::new(dim, config.precision));
+        Self::with_table(config, dim, table)
+    }
+
+    fn with_table(config: PointCloudConfig, dim: usize, embeddings: Table) -> Self {
         Self {
-            embeddings: EmbeddingStore::new(dim, config.precision),
+            embeddings,
             config,
             dim,
             positions: Vec::new(),
@@ -187,7 +232,9 @@ impl PointCloudMap {
     pub fn reserve(&mut self, additional: usize) {
         self.positions.reserve(additional);
         self.colours.reserve(additional);
-        self.embeddings.reserve(additional);
+        if let Some(store) = self.embeddings.host_mut() {
+            store.reserve(additional);
+        }
     }
 
     /// Positions of all points.
@@ -195,8 +242,12 @@ impl PointCloudMap {
         &self.positions
     }
 
-    /// The `len x dim` embedding table, widened to `f32`.
-    pub fn embeddings(&self) -> Vec<f32> {
+    /// The `len x dim` embedding table, widened to `f32` (copied from the device if it is on
+    /// one).
+    ///
+    /// # Errors
+    /// [`MapError::DeviceTable`] when the copy from the device fails.
+    pub fn embeddings(&self) -> Result<Vec<f32>, MapError> {
         self.embeddings.to_f32()
     }
 
@@ -271,7 +322,11 @@ impl PointCloudMap {
     }
 
     /// One integration (of a checked observation) with the frame buffers in `scratch`.
-    fn integrate_with(&mut self, obs: &Observation<'_>, scratch: &mut Scratch) -> IntegrationStats {
+    fn integrate_with(
+        &mut self,
+        obs: &Observation<'_>,
+        scratch: &mut Scratch,
+    ) -> Result<IntegrationStats, MapError> {
         let Scratch {
             observed: new,
             matches,
@@ -286,8 +341,9 @@ impl PointCloudMap {
         };
         self.frames += 1;
         if new.positions.is_empty() {
-            return stats;
+            return Ok(stats);
         }
+        let uploaded = self.upload(obs)?;
         chosen.clear();
         chosen.resize(new.positions.len(), false);
         if !self.positions.is_empty() {
@@ -296,16 +352,43 @@ impl PointCloudMap {
                 chosen[m as usize] = true;
                 stats.fused += 1;
             }
-            self.fuse(obs, new, matches);
+            self.fuse(obs, new, matches, uploaded.as_ref())?;
         }
-        stats.inserted = self.insert(obs, new, chosen);
+        stats.inserted = self.insert(obs, new, chosen, uploaded.as_ref())?;
         let footprint =
             new.mean_depth / obs.frame.intrinsics.fx as f32 * self.config.pixel_stride as f32;
-        stats.removed = self.enforce_budget(footprint, grouping);
-        stats
+        stats.removed = self.enforce_budget(footprint, grouping)?;
+        Ok(stats)
     }
 
-    fn fuse(&mut self, obs: &Observation<'_>, new: &Observed, matches: &[u32]) {
+    /// The frame's embeddings copied to the device, when the table is on one.
+    #[cfg(feature = "candle")]
+    fn upload<'a>(&self, obs: &Observation<'a>) -> Result<Option<Uploaded<'a>>, MapError> {
+        match (&self.embeddings, obs.embeddings) {
+            (Table::Device(table), Some(embeddings)) => {
+                Ok(Some(FrameTable::upload(embeddings, table)?))
+            }
+            _ => Ok(None),
+        }
+    }
+
+    #[cfg(not(feature = "candle"))]
+    #[allow(
+        clippy::unnecessary_wraps,
+        clippy::unused_self,
+        reason = "the signature of the build with device tables"
+    )]
+    fn upload<'a>(&self, _obs: &Observation<'a>) -> Result<Option<Uploaded<'a>>, MapError> {
+        Ok(None)
+    }
+
+    fn fuse(
+        &mut self,
+        obs: &Observation<'_>,
+        new: &Observed,
+        matches: &[u32],
+        uploaded: Option<&Uploaded<'_>>,
+    ) -> Result<(), MapError> {
         let w = self.config.map_weight;
         let colour = &obs.frame.colour;
         let fuse_colour = |c: &mut [u8; 3], pixel: u32| {
@@ -314,18 +397,43 @@ impl PointCloudMap {
                 c[k] = round_colour((1.0 - w) * f32::from(p[k]) + w * f32::from(c[k]));
             }
         };
-        let Some(embeddings) = obs.embeddings.filter(|_| self.dim > 0) else {
-            self.colours
+        let fuse_colours = |colours: &mut [[u8; 3]]| {
+            colours
                 .par_iter_mut()
                 .zip(matches.par_iter())
                 .with_min_len(1024)
                 .filter(|(_, m)| **m != NONE)
                 .for_each(|(c, &m)| fuse_colour(c, new.pixels[m as usize]));
-            return;
         };
+        let Some(embeddings) = obs.embeddings.filter(|_| self.dim > 0) else {
+            fuse_colours(&mut self.colours);
+            return Ok(());
+        };
+        let store = match &mut self.embeddings {
+            Table::Host(store) => store,
+            #[cfg(feature = "candle")]
+            Table::Device(table) => {
+                fuse_colours(&mut self.colours);
+                let Some(frame) = uploaded else {
+                    return Ok(());
+                };
+                // The map rows that fuse, and how each one's observation is looked up.
+                let mut rows = Vec::new();
+                let mut lookups = Lookups::default();
+                frame.lookups(&mut lookups);
+                for (i, &m) in matches.iter().enumerate() {
+                    if m != NONE && frame.push(new.pixels[m as usize], &mut lookups) {
+                        rows.push(i as u32);
+                    }
+                }
+                return table.fuse(frame, &rows, &lookups, w);
+            }
+        };
+        #[cfg(not(feature = "candle"))]
+        let _ = uploaded;
         // Colours and embeddings in one pass over the matches.
         let dim = self.dim;
-        self.embeddings.par_update_rows_zip(
+        store.par_update_rows_zip(
             0,
             &mut self.colours,
             || vec![0.0f32; dim],
@@ -345,11 +453,38 @@ impl PointCloudMap {
                 }
             },
         );
+        Ok(())
     }
 
-    fn insert(&mut self, obs: &Observation<'_>, new: &Observed, chosen: &[bool]) -> usize {
-        let fresh: Vec<usize> = (0..new.positions.len()).filter(|&i| !chosen[i]).collect();
+    fn insert(
+        &mut self,
+        obs: &Observation<'_>,
+        new: &Observed,
+        chosen: &[bool],
+        uploaded: Option<&Uploaded<'_>>,
+    ) -> Result<usize, MapError> {
         let colour = &obs.frame.colour;
+        #[cfg(feature = "candle")]
+        if let (Table::Device(table), Some(frame)) = (&mut self.embeddings, uploaded) {
+            // Only the points whose embedding can be looked up, as the host table keeps.
+            let mut lookups = Lookups::default();
+            frame.lookups(&mut lookups);
+            let fresh: Vec<usize> = (0..new.positions.len())
+                .filter(|&i| !chosen[i] && frame.push(new.pixels[i], &mut lookups))
+                .collect();
+            self.positions
+                .extend(fresh.iter().map(|&i| new.positions[i]));
+            self.colours.extend(
+                fresh
+                    .iter()
+                    .map(|&i| colour.at_index(new.pixels[i] as usize)),
+            );
+            table.append(frame, &lookups)?;
+            return Ok(fresh.len());
+        }
+        #[cfg(not(feature = "candle"))]
+        let _ = uploaded;
+        let fresh: Vec<usize> = (0..new.positions.len()).filter(|&i| !chosen[i]).collect();
         self.positions
             .extend(fresh.iter().map(|&i| new.positions[i]));
         self.colours.extend(
@@ -360,11 +495,12 @@ impl PointCloudMap {
         let dim = self.dim;
         if let Some(embeddings) = obs.embeddings
             && dim > 0
+            && let Table::Host(store) = &mut self.embeddings
         {
-            let start = self.embeddings.rows();
-            self.embeddings.grow(fresh.len());
+            let start = store.rows();
+            store.grow(fresh.len());
             let missing = AtomicBool::new(false);
-            self.embeddings.par_update_rows_with(
+            store.par_update_rows_with(
                 start,
                 || vec![0.0f32; dim],
                 |scratch, row_index, row| {
@@ -384,33 +520,36 @@ impl PointCloudMap {
                 },
             );
             if missing.into_inner() {
-                return fresh.len() - self.drop_zero_rows(start);
+                return Ok(fresh.len() - self.drop_zero_rows(start));
             }
         }
-        fresh.len()
+        Ok(fresh.len())
     }
 
     /// Removes the points from `start` on whose embedding row is zero (no embedding could be
     /// looked up), keeping the order of the others. Returns the number removed.
     fn drop_zero_rows(&mut self, start: usize) -> usize {
+        let Some(store) = self.embeddings.host_mut() else {
+            return 0;
+        };
         let before = self.positions.len();
         let mut row = vec![0.0f32; self.dim];
         let mut kept = start;
         for i in start..before {
-            self.embeddings.row_into(i, &mut row);
+            store.row_into(i, &mut row);
             if row.iter().all(|x| *x == 0.0) {
                 continue;
             }
             if kept != i {
                 self.positions[kept] = self.positions[i];
                 self.colours[kept] = self.colours[i];
-                self.embeddings.set_row(kept, &row);
+                store.set_row(kept, &row);
             }
             kept += 1;
         }
         self.positions.truncate(kept);
         self.colours.truncate(kept);
-        self.embeddings.truncate(kept);
+        store.truncate(kept);
         before - kept
     }
 
@@ -423,11 +562,15 @@ impl PointCloudMap {
     /// the number of occupied octants could never be met). The finest size tried keeps the voxel
     /// coordinates of the box within the key's 21 bits per axis, so distant points never share a
     /// voxel through clamping.
-    fn enforce_budget(&mut self, footprint: f32, buffers: &mut GroupingBuffers) -> usize {
+    fn enforce_budget(
+        &mut self,
+        footprint: f32,
+        buffers: &mut GroupingBuffers,
+    ) -> Result<usize, MapError> {
         let budget = self.config.max_points;
         let before = self.positions.len();
         if before <= budget {
-            return 0;
+            return Ok(0);
         }
         let (origin, extent) = bounding_box(&self.positions);
         // Never finer than the density already established (the map's density only falls), and
@@ -464,7 +607,7 @@ impl PointCloudMap {
                 self.positions.truncate(budget);
                 self.colours.truncate(budget);
                 self.embeddings.truncate(budget);
-                return before - budget;
+                return Ok(before - budget);
             };
             // Bisect geometrically between the last size that failed and the first that held.
             while hi / lo > 1.05 {
@@ -480,16 +623,15 @@ impl PointCloudMap {
             lo = hi;
         }
         self.voxel_size = lo;
-        self.merge(buffers);
-        before - self.positions.len()
+        self.merge(buffers)?;
+        Ok(before - self.positions.len())
     }
 
     /// Replaces every voxel group of two or more points by one point (mean position and colour,
     /// renormalised mean embedding) in the slot of its first member, then removes the other members
     /// by moving points from the end into their slots. The cost is proportional to the points
     /// merged, not to the map size.
-    fn merge(&mut self, buffers: &mut GroupingBuffers) {
-        let dim = self.dim;
+    fn merge(&mut self, buffers: &mut GroupingBuffers) -> Result<(), MapError> {
         let GroupingBuffers {
             held,
             members,
@@ -517,33 +659,20 @@ impl PointCloudMap {
                 )
             })
             .collect();
-        let mut merged_embeddings = vec![0.0f32; multi.len() * dim];
-        if dim > 0 {
-            merged_embeddings
-                .par_chunks_exact_mut(dim)
-                .zip(multi.par_iter())
-                .for_each_init(
-                    || vec![0.0f32; dim],
-                    |member, (row, run)| {
-                        for &i in run.iter() {
-                            self.embeddings.row_into(i as usize, member);
-                            row.iter_mut().zip(member.iter()).for_each(|(a, b)| *a += b);
-                        }
-                        // Members that cancel out: keep the first one's embedding.
-                        if !normalise(row) {
-                            self.embeddings.row_into(run[0] as usize, row);
-                        }
-                    },
-                );
+        if self.dim > 0 {
+            match &mut self.embeddings {
+                Table::Host(store) => merge_rows(store, &multi, &merged_points),
+                #[cfg(feature = "candle")]
+                Table::Device(table) => {
+                    let targets: Vec<u32> = merged_points.iter().map(|m| m.0 as u32).collect();
+                    table.merge_groups(members, ends, &targets)?;
+                }
+            }
         }
         let mut dead = Vec::with_capacity(self.positions.len() - held.count);
         for (g, (target, p, c)) in merged_points.into_iter().enumerate() {
             self.positions[target] = p;
             self.colours[target] = c;
-            if dim > 0 {
-                self.embeddings
-                    .set_row(target, &merged_embeddings[g * dim..(g + 1) * dim]);
-            }
             dead.extend(
                 multi[g]
                     .iter()
@@ -553,14 +682,78 @@ impl PointCloudMap {
         }
         // Descending, so the point moved into a dead slot is always a live one.
         dead.par_sort_unstable_by(|a, b| b.cmp(a));
+        #[cfg(feature = "candle")]
+        if let Table::Device(table) = &mut self.embeddings
+            && self.dim > 0
+        {
+            let (from, to) = swap_removal_moves(self.positions.len(), &dead);
+            table.move_rows(&from, &to)?;
+            table.truncate(self.positions.len() - dead.len());
+        }
         for d in dead {
             self.positions.swap_remove(d);
             self.colours.swap_remove(d);
-            if dim > 0 {
-                self.embeddings.swap_remove(d);
+            if self.dim > 0
+                && let Table::Host(store) = &mut self.embeddings
+            {
+                store.swap_remove(d);
             }
         }
+        Ok(())
     }
+}
+
+/// Sets each merged group's target row of `store` to the renormalised mean of its members' rows
+/// (the first member's row where they cancel out).
+fn merge_rows(
+    store: &mut EmbeddingStore,
+    multi: &[&[u32]],
+    merged_points: &[(usize, [f32; 3], [u8; 3])],
+) {
+    let dim = store.dim();
+    let mut merged_embeddings = vec![0.0f32; multi.len() * dim];
+    merged_embeddings
+        .par_chunks_exact_mut(dim)
+        .zip(multi.par_iter())
+        .for_each_init(
+            || vec![0.0f32; dim],
+            |member, (row, run)| {
+                for &i in run.iter() {
+                    store.row_into(i as usize, member);
+                    row.iter_mut().zip(member.iter()).for_each(|(a, b)| *a += b);
+                }
+                // Members that cancel out: keep the first one's embedding.
+                if !normalise(row) {
+                    store.row_into(run[0] as usize, row);
+                }
+            },
+        );
+    for (g, (target, ..)) in merged_points.iter().enumerate() {
+        store.set_row(*target, &merged_embeddings[g * dim..(g + 1) * dim]);
+    }
+}
+
+/// What removing rows `dead` (descending, distinct) one by one with `swap_remove` from a table of
+/// `len` rows does, as row copies `from[i] → to[i]` followed by a truncation to `len - dead.len()`:
+/// a row moved into a dead slot may be moved again later, so each copy names the row's original
+/// index, and no row is both a source and a destination.
+#[cfg(feature = "candle")]
+fn swap_removal_moves(len: usize, dead: &[usize]) -> (Vec<u32>, Vec<u32>) {
+    // Slot → the original row it now holds, for slots filled by a move.
+    let mut filled = std::collections::HashMap::with_capacity(dead.len());
+    let mut len = len;
+    for &d in dead {
+        let last = len - 1;
+        let moved = filled.remove(&last).unwrap_or(last);
+        if d != last {
+            filled.insert(d, moved);
+        }
+        len -= 1;
+    }
+    filled
+        .into_iter()
+        .map(|(to, from)| (from as u32, to as u32))
+        .unzip()
 }
 
 impl EmbeddingMap for PointCloudMap {
@@ -580,7 +773,7 @@ impl EmbeddingMap for PointCloudMap {
         let mut scratch = std::mem::take(&mut self.scratch);
         let stats = self.integrate_with(obs, &mut scratch);
         self.scratch = scratch;
-        Ok(stats)
+        stats.map_err(|e| e.into_core(StageKind::Map, NAME))
     }
 
     fn len(&self) -> usize {
@@ -597,8 +790,12 @@ impl EmbeddingMap for PointCloudMap {
     fn memory_bytes(&self) -> usize {
         self.positions.capacity() * std::mem::size_of::<[f32; 3]>()
             + self.colours.capacity() * 3
-            + self.embeddings.memory_bytes()
+            + self.embeddings.host_bytes()
             + self.scratch.memory_bytes()
+    }
+
+    fn device_memory_bytes(&self) -> usize {
+        self.embeddings.device_bytes()
     }
 
     fn similarity(&self, text: &[f32], out: &mut Vec<f32>) -> vlem_core::Result<()> {
@@ -617,18 +814,21 @@ impl EmbeddingMap for PointCloudMap {
         }
     }
 
-    fn snapshot(&self) -> MapSnapshot {
-        MapSnapshot {
+    fn snapshot(&self) -> vlem_core::Result<MapSnapshot> {
+        Ok(MapSnapshot {
             map_kind: NAME.into(),
             dim: self.dim,
             positions: self.positions.clone(),
             colours: self.colours.clone(),
-            embeddings: self.embeddings.to_f32(),
+            embeddings: self
+                .embeddings
+                .to_f32()
+                .map_err(|e| e.into_core(StageKind::Map, NAME))?,
             metadata: MapMetadata {
                 frames_integrated: self.frames,
                 ..MapMetadata::default()
             },
-        }
+        })
     }
 
     fn restore(&mut self, snapshot: MapSnapshot) -> vlem_core::Result<()> {
@@ -636,13 +836,13 @@ impl EmbeddingMap for PointCloudMap {
         self.frames = snapshot.metadata.frames_integrated;
         self.positions = snapshot.positions;
         self.colours = snapshot.colours;
-        self.embeddings =
-            EmbeddingStore::from_f32(self.dim, self.config.precision, snapshot.embeddings);
+        let core = |e: MapError| e.into_core(StageKind::Map, NAME);
+        self.embeddings.replace(snapshot.embeddings).map_err(core)?;
         self.voxel_size = 0.0;
         let mut grouping = std::mem::take(&mut self.scratch.grouping);
-        let _ = self.enforce_budget(0.0, &mut grouping);
+        let merged = self.enforce_budget(0.0, &mut grouping);
         self.scratch.grouping = grouping;
-        Ok(())
+        merged.map(|_| ()).map_err(core)
     }
 }
 
@@ -651,6 +851,32 @@ mod tests {
     use super::*;
     use crate::storage::Precision;
     use vlem_core::{DepthImage, Frame, Intrinsics, PixelEmbeddings, Pose, RgbImage};
+
+    #[cfg(feature = "candle")]
+    #[test]
+    fn swap_removals_reduce_to_moves_from_the_tail() {
+        // Removing [7, 2, 1] from 10 rows moves 9 → 7, then 8 → 2, then (the row now in) 7 → 1.
+        for (len, dead) in [
+            (10usize, vec![7usize, 2, 1]),
+            (10, vec![9, 8, 2]),
+            (6, vec![5, 4, 3, 2, 1, 0]),
+            (12, vec![11, 6, 5, 3, 0]),
+        ] {
+            let mut rows: Vec<usize> = (0..len).collect();
+            for &d in &dead {
+                rows.swap_remove(d);
+            }
+            let (from, to) = swap_removal_moves(len, &dead);
+            let mut moved: Vec<usize> = (0..len).collect();
+            let sources: std::collections::HashSet<u32> = from.iter().copied().collect();
+            assert!(to.iter().all(|t| !sources.contains(t)), "{dead:?}");
+            for (&f, &t) in from.iter().zip(&to) {
+                moved[t as usize] = f as usize;
+            }
+            moved.truncate(len - dead.len());
+            assert_eq!(moved, rows, "{dead:?}");
+        }
+    }
 
     const DIM: usize = 4;
 
@@ -712,7 +938,7 @@ mod tests {
         assert_eq!((second.fused, second.inserted), (16 * 12, 0));
         // e = normalise(0.75 * e_P + 0.25 * e_M)
         let n = (0.75f32 * 0.75 + 0.25 * 0.25).sqrt();
-        for row in m.embeddings().chunks_exact(DIM) {
+        for row in m.embeddings().unwrap().chunks_exact(DIM) {
             assert!(
                 (row[0] - 0.25 / n).abs() < 1e-6 && (row[1] - 0.75 / n).abs() < 1e-6,
                 "{row:?}"
@@ -750,6 +976,7 @@ mod tests {
         );
         assert!(
             m.embeddings()
+                .unwrap()
                 .chunks_exact(DIM)
                 .all(|r| r == [-1.0, 0.0, 0.0, 0.0])
         );
@@ -793,7 +1020,7 @@ mod tests {
                 "sparse point {p:?} was moved or dropped"
             );
         }
-        for row in m.embeddings().chunks_exact(DIM) {
+        for row in m.embeddings().unwrap().chunks_exact(DIM) {
             let norm = row.iter().map(|x| x * x).sum::<f32>().sqrt();
             assert!((norm - 1.0).abs() < 1e-5);
         }
@@ -828,7 +1055,7 @@ mod tests {
             "{} points for a budget of 5000",
             m.len()
         );
-        assert_eq!(m.embeddings().len(), m.len() * DIM);
+        assert_eq!(m.embeddings().unwrap().len(), m.len() * DIM);
         assert!(m.voxel_size() > 0.0);
     }
 
@@ -979,7 +1206,13 @@ mod tests {
         m.integrate(&obs).unwrap();
         m.integrate(&obs).unwrap();
         assert_eq!(m.len(), 16 * 12);
-        assert!(m.snapshot().colours.iter().all(|c| *c == [200, 100, 0]));
+        assert!(
+            m.snapshot()
+                .unwrap()
+                .colours
+                .iter()
+                .all(|c| *c == [200, 100, 0])
+        );
         let mut out = Vec::new();
         assert!(m.similarity(&[], &mut out).is_err());
     }

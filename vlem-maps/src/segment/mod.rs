@@ -629,7 +629,7 @@ impl EmbeddingMap for SegmentMap {
         }
     }
 
-    fn snapshot(&self) -> MapSnapshot {
+    fn snapshot(&self) -> vlem_core::Result<MapSnapshot> {
         let n = self.owner.len();
         let mut positions = Vec::with_capacity(n);
         let mut colours = Vec::with_capacity(n);
@@ -645,7 +645,7 @@ impl EmbeddingMap for SegmentMap {
                 embeddings.extend_from_slice(&row);
             }
         }
-        MapSnapshot {
+        Ok(MapSnapshot {
             map_kind: NAME.into(),
             dim: self.dim,
             positions,
@@ -655,7 +655,7 @@ impl EmbeddingMap for SegmentMap {
                 frames_integrated: self.frames,
                 ..MapMetadata::default()
             },
-        }
+        })
     }
 
     /// Rebuilds segments from a snapshot: consecutive points with bit-identical embeddings and
@@ -822,13 +822,13 @@ mod tests {
         let mut m = config().build(Some(DIM)).unwrap();
         let e = uniform([1.0, 0.0, 0.0, 0.0]);
         integrate(&mut m, &plane(1.0), &e);
-        let (n, before) = (m.len(), m.snapshot());
+        let (n, before) = (m.len(), m.snapshot().unwrap());
         // Half a metre further away: no cell in common.
         let stats = integrate(&mut m, &plane(1.5), &uniform([0.0, 1.0, 0.0, 0.0]));
         assert_eq!(m.segment_count(), 2);
         assert_eq!(stats.inserted, m.len() - n);
         // The first segment is untouched.
-        let after = m.snapshot();
+        let after = m.snapshot().unwrap();
         assert_eq!(after.positions[..n], before.positions[..]);
         assert_eq!(after.embeddings[..n * DIM], before.embeddings[..]);
     }
@@ -882,7 +882,7 @@ mod tests {
         assert!(m.len() <= 10 && !m.is_empty(), "{} cells", m.len());
         assert!(m.spacing() > 0.1);
         assert_eq!(stats.inserted - stats.removed, m.len());
-        let snap = m.snapshot();
+        let snap = m.snapshot().unwrap();
         for row in snap.embeddings.chunks_exact(DIM) {
             assert!(row == [1.0, 0.0, 0.0, 0.0] || row == [0.0, 1.0, 0.0, 0.0]);
         }
@@ -921,10 +921,10 @@ mod tests {
         );
         // A later segment with the same embedding as the first stays a segment of its own.
         integrate(&mut m, &plane(2.0), &uniform([1.0, 0.0, 0.0, 0.0]));
-        let snap = m.snapshot();
+        let snap = m.snapshot().unwrap();
         let mut fresh = config().build(Some(DIM)).unwrap();
         fresh.restore(snap.clone()).unwrap();
-        assert_eq!(fresh.snapshot(), snap);
+        assert_eq!(fresh.snapshot().unwrap(), snap);
         assert_eq!(fresh.segment_count(), 3);
     }
 
@@ -982,11 +982,20 @@ mod tests {
         let n = m.len();
         m.integrate(&obs).unwrap();
         assert_eq!((m.len(), m.segment_count()), (n, 1));
-        assert!(m.snapshot().colours.iter().all(|c| *c == [200, 100, 0]));
+        assert!(
+            m.snapshot()
+                .unwrap()
+                .colours
+                .iter()
+                .all(|c| *c == [200, 100, 0])
+        );
         assert!(m.similarity(&[], &mut Vec::new()).is_err());
         let mut fresh = config().build(None).unwrap();
-        fresh.restore(m.snapshot()).unwrap();
-        assert_eq!(fresh.snapshot().positions, m.snapshot().positions);
+        fresh.restore(m.snapshot().unwrap()).unwrap();
+        assert_eq!(
+            fresh.snapshot().unwrap().positions,
+            m.snapshot().unwrap().positions
+        );
     }
 
     #[test]

@@ -640,8 +640,8 @@ impl EmbeddingMap for VoxelMap {
         }
     }
 
-    fn snapshot(&self) -> MapSnapshot {
-        MapSnapshot {
+    fn snapshot(&self) -> vlem_core::Result<MapSnapshot> {
+        Ok(MapSnapshot {
             map_kind: NAME.into(),
             dim: self.dim,
             positions: self.positions(),
@@ -651,7 +651,7 @@ impl EmbeddingMap for VoxelMap {
                 frames_integrated: self.frames,
                 ..MapMetadata::default()
             },
-        }
+        })
     }
 
     /// Rebuilds one voxel per distinct voxel of the saved positions, with count 1, last observed
@@ -781,7 +781,13 @@ mod tests {
         let h = 0.5f32.sqrt();
         assert_rows(&m, &[2.0 / 3.0 * h, 2.0 / 3.0 * h + 1.0 / 3.0, 0.0, 0.0]);
         assert_eq!(m.counts().iter().sum::<u32>(), 3 * W * H);
-        assert!(m.snapshot().colours.iter().all(|c| *c == [200, 100, 0]));
+        assert!(
+            m.snapshot()
+                .unwrap()
+                .colours
+                .iter()
+                .all(|c| *c == [200, 100, 0])
+        );
 
         // With a cap of 1 the latest observation replaces the mean.
         let mut capped = map(VoxelConfig {
@@ -839,7 +845,7 @@ mod tests {
             xs.iter().all(|x| x.abs() < 1.0 || (x - 20.0).abs() < 1.0),
             "{xs:?}"
         );
-        assert!(m.snapshot().validate().is_ok());
+        assert!(m.snapshot().unwrap().validate().is_ok());
         // The index still finds every voxel at its slot after the swaps.
         for (i, k) in m.keys.iter().enumerate() {
             assert_eq!(m.index[k] as usize, i);
@@ -1017,13 +1023,13 @@ mod tests {
             &translated(0.01),
             &uniform([0.5, 0.7, 0.1, 0.2]),
         );
-        let snap = m.snapshot();
+        let snap = m.snapshot().unwrap();
         let mut fresh = map(VoxelConfig {
             precision: Precision::F16,
             ..VoxelConfig::default()
         });
         fresh.restore(snap.clone()).unwrap();
-        assert_eq!(fresh.snapshot(), snap);
+        assert_eq!(fresh.snapshot().unwrap(), snap);
 
         // Two points in one voxel (as a point-cloud snapshot might hold) become one voxel.
         let points = MapSnapshot {
@@ -1037,7 +1043,7 @@ mod tests {
         fresh.restore(points.clone()).unwrap();
         assert_eq!(fresh.len(), 2);
         assert_eq!(fresh.counts(), &[2, 1]);
-        assert_eq!(fresh.snapshot().colours[0], [50, 50, 50]);
+        assert_eq!(fresh.snapshot().unwrap().colours[0], [50, 50, 50]);
         assert_eq!(fresh.positions()[0], [0.025, 0.025, 0.025]);
         let e = fresh.embeddings();
         assert!((e[0] - 0.5f32.sqrt()).abs() < 1e-3 && (e[1] - 0.5f32.sqrt()).abs() < 1e-3);
@@ -1067,7 +1073,13 @@ mod tests {
         assert!(n > 0);
         m.integrate(&obs).unwrap();
         assert_eq!(m.len(), n);
-        assert!(m.snapshot().colours.iter().all(|c| *c == [200, 100, 0]));
+        assert!(
+            m.snapshot()
+                .unwrap()
+                .colours
+                .iter()
+                .all(|c| *c == [200, 100, 0])
+        );
         assert!(m.similarity(&[], &mut Vec::new()).is_err());
         let mut small = VoxelConfig {
             max_voxels: 3,
