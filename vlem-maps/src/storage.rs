@@ -12,7 +12,7 @@ mod wide;
 pub(crate) use table::Table;
 
 #[cfg(feature = "candle")]
-pub use device::{CHUNK_ROWS, DeviceTable, FrameTable, Lookups};
+pub use device::{CHUNK_ROWS, DeviceTable, FrameTable, Lookups, RowSums, swap_removal_moves};
 
 use half::f16;
 // Slice conversions use the CPU's F16C instructions where present (detected at run time);

@@ -1,9 +1,9 @@
-//! The point-cloud map with its embedding table on a candle device (`[map] device`), run on
+//! The point-cloud and voxel maps with their embedding tables on a candle device (`[map] device`), run on
 //! candle's CPU device (or the GPU that `VLEM_TEST_DEVICE=cuda` names, in a build with `cuda`):
 //! the map contract, and the same sequence as the host table giving the same
 //! points and, within rounding, the same rows and query ranking — through fusion, insertion and
 //! the budget's merges, from segment tables and from patch grids, in both precisions.
-#![cfg(all(feature = "point-cloud", feature = "candle"))]
+#![cfg(all(feature = "point-cloud", feature = "voxel", feature = "candle"))]
 #![allow(
     clippy::unwrap_used,
     clippy::expect_used,
@@ -16,6 +16,7 @@ use vlem_backends::ComputeDevice;
 use vlem_core::{EmbeddingMap, Frame, Observation, PixelEmbeddings};
 use vlem_maps::point_cloud::PointCloudConfig;
 use vlem_maps::storage::Precision;
+use vlem_maps::voxel::VoxelConfig;
 use vlem_testkit::map::{half_segments, plane_frame, pose};
 
 /// candle's CPU device, or the one `VLEM_TEST_DEVICE` names.
@@ -37,6 +38,27 @@ fn device_point_cloud(dim: usize, max_points: usize) -> Box<dyn EmbeddingMap> {
 
 vlem_testkit::map_conformance!(device_point_cloud);
 
+fn voxel_config(max_voxels: usize, precision: Precision) -> VoxelConfig {
+    VoxelConfig {
+        max_voxels,
+        voxel_size: 0.02,
+        precision,
+        ..VoxelConfig::default()
+    }
+}
+
+fn device_voxel(dim: usize, max_voxels: usize) -> Box<dyn EmbeddingMap> {
+    match voxel_config(max_voxels, Precision::F32).build_on(Some(dim), &test_device()) {
+        Ok(map) => Box::new(map),
+        Err(e) => panic!("valid config refused: {e}"),
+    }
+}
+
+mod voxel {
+    use super::*;
+    vlem_testkit::map_conformance!(device_voxel);
+}
+
 const DIM: usize = 8;
 
 /// A 4×3 patch grid of pseudo-random rows (some pairs nearly opposite, so blends come close to
@@ -53,14 +75,39 @@ fn patch_grid(frame: &Frame, seed: usize) -> PixelEmbeddings {
     PixelEmbeddings::from_patch_grid(w, h, DIM, gw, gh, data).unwrap()
 }
 
-fn run_both(precision: Precision, patches: bool) {
-    let config = PointCloudConfig {
+/// The point-cloud map and the voxel map, each on the host and on the device.
+fn pairs(precision: Precision) -> Vec<(Box<dyn EmbeddingMap>, Box<dyn EmbeddingMap>)> {
+    let point_cloud = PointCloudConfig {
         max_points: 1500,
         precision,
         ..PointCloudConfig::default()
     };
-    let mut host = config.build(Some(DIM)).unwrap();
-    let mut device = config.build_on(Some(DIM), &test_device()).unwrap();
+    let voxel = voxel_config(1500, precision);
+    vec![
+        (
+            Box::new(point_cloud.build(Some(DIM)).unwrap()),
+            Box::new(point_cloud.build_on(Some(DIM), &test_device()).unwrap()),
+        ),
+        (
+            Box::new(voxel.build(Some(DIM)).unwrap()),
+            Box::new(voxel.build_on(Some(DIM), &test_device()).unwrap()),
+        ),
+    ]
+}
+
+fn run_both(precision: Precision, patches: bool) {
+    for (host, device) in pairs(precision) {
+        compare(host, device, precision, patches);
+    }
+}
+
+fn compare(
+    mut host: Box<dyn EmbeddingMap>,
+    mut device: Box<dyn EmbeddingMap>,
+    precision: Precision,
+    patches: bool,
+) {
+    let name = host.name();
     assert_eq!(host.device_memory_bytes(), 0);
     assert!(device.device_memory_bytes() >= 1500 * DIM * 2);
     let mut removed = 0;
@@ -81,10 +128,13 @@ fn run_both(precision: Precision, patches: bool) {
         };
         let a = host.integrate(&obs).unwrap();
         let b = device.integrate(&obs).unwrap();
-        assert_eq!(a, b, "frame {i}: the same geometry, the same counts");
+        assert_eq!(
+            a, b,
+            "{name}, frame {i}: the same geometry, the same counts"
+        );
         removed += a.removed;
     }
-    assert!(removed > 0, "the budget never merged");
+    assert!(removed > 0, "{name}: the budget never merged or evicted");
     let (a, b) = (host.snapshot().unwrap(), device.snapshot().unwrap());
     assert_eq!(a.positions, b.positions);
     assert_eq!(a.colours, b.colours);
@@ -100,7 +150,7 @@ fn run_both(precision: Precision, patches: bool) {
         .enumerate()
     {
         for (p, q) in x.iter().zip(y) {
-            assert!((p - q).abs() <= tolerance, "row {row}: {p} vs {q}");
+            assert!((p - q).abs() <= tolerance, "{name}, row {row}: {p} vs {q}");
         }
     }
     // Queries: one pass for several texts, the same scores within rounding, so the same ranking
@@ -120,12 +170,12 @@ fn run_both(precision: Precision, patches: bool) {
         assert_eq!(x.len(), host.len());
         assert!(
             x.iter().zip(y).all(|(p, q)| (p - q).abs() <= tolerance),
-            "text {t}"
+            "{name}, text {t}"
         );
         for i in 0..x.len() {
             for j in 0..x.len() {
                 if x[i] > x[j] + 2.0 * tolerance {
-                    assert!(y[i] > y[j], "text {t}: points {i} and {j} swap places");
+                    assert!(y[i] > y[j], "{name}, text {t}: {i} and {j} swap places");
                 }
             }
         }

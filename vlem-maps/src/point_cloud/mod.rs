@@ -36,7 +36,7 @@ use crate::kit::{
     positive_metres, unit_weight,
 };
 #[cfg(feature = "candle")]
-use crate::storage::{DeviceTable, FrameTable, Lookups};
+use crate::storage::{DeviceTable, FrameTable, Lookups, swap_removal_moves};
 use crate::storage::{EmbeddingStore, Table, fuse_into};
 
 /// A frame's embeddings as uploaded to a device table (nothing in a build without one).
@@ -409,28 +409,28 @@ impl PointCloudMap {
             fuse_colours(&mut self.colours);
             return Ok(());
         };
-        let store = match &mut self.embeddings {
-            Table::Host(store) => store,
-            #[cfg(feature = "candle")]
-            Table::Device(table) => {
-                fuse_colours(&mut self.colours);
-                let Some(frame) = uploaded else {
-                    return Ok(());
-                };
-                // The map rows that fuse, and how each one's observation is looked up.
-                let mut rows = Vec::new();
-                let mut lookups = Lookups::default();
-                frame.lookups(&mut lookups);
-                for (i, &m) in matches.iter().enumerate() {
-                    if m != NONE && frame.push(new.pixels[m as usize], &mut lookups) {
-                        rows.push(i as u32);
-                    }
+        #[cfg(feature = "candle")]
+        if let Table::Device(table) = &mut self.embeddings {
+            fuse_colours(&mut self.colours);
+            let Some(frame) = uploaded else {
+                return Ok(());
+            };
+            // The map rows that fuse, and how each one's observation is looked up.
+            let mut rows = Vec::new();
+            let mut lookups = Lookups::default();
+            frame.lookups(&mut lookups);
+            for (i, &m) in matches.iter().enumerate() {
+                if m != NONE && frame.push(new.pixels[m as usize], &mut lookups) {
+                    rows.push(i as u32);
                 }
-                return table.fuse(frame, &rows, &lookups, w);
             }
-        };
+            return table.fuse(frame, &rows, &lookups, w);
+        }
         #[cfg(not(feature = "candle"))]
         let _ = uploaded;
+        let Some(store) = self.embeddings.host_mut() else {
+            return Ok(());
+        };
         // Colours and embeddings in one pass over the matches.
         let dim = self.dim;
         store.par_update_rows_zip(
@@ -731,29 +731,6 @@ fn merge_rows(
     for (g, (target, ..)) in merged_points.iter().enumerate() {
         store.set_row(*target, &merged_embeddings[g * dim..(g + 1) * dim]);
     }
-}
-
-/// What removing rows `dead` (descending, distinct) one by one with `swap_remove` from a table of
-/// `len` rows does, as row copies `from[i] → to[i]` followed by a truncation to `len - dead.len()`:
-/// a row moved into a dead slot may be moved again later, so each copy names the row's original
-/// index, and no row is both a source and a destination.
-#[cfg(feature = "candle")]
-fn swap_removal_moves(len: usize, dead: &[usize]) -> (Vec<u32>, Vec<u32>) {
-    // Slot → the original row it now holds, for slots filled by a move.
-    let mut filled = std::collections::HashMap::with_capacity(dead.len());
-    let mut len = len;
-    for &d in dead {
-        let last = len - 1;
-        let moved = filled.remove(&last).unwrap_or(last);
-        if d != last {
-            filled.insert(d, moved);
-        }
-        len -= 1;
-    }
-    filled
-        .into_iter()
-        .map(|(to, from)| (from as u32, to as u32))
-        .unzip()
 }
 
 impl EmbeddingMap for PointCloudMap {

@@ -999,6 +999,17 @@ mod tests {
     }
 
     #[test]
+    fn a_device_for_the_table_is_refused_by_name() {
+        let config: SegmentConfig = toml::from_str("device = \"cuda:1\"").unwrap();
+        let error = config.build(Some(DIM)).err().map(|e| e.to_string());
+        let error = error.unwrap_or_default();
+        assert!(
+            error.contains("segment map") && error.contains("`device`"),
+            "{error}"
+        );
+    }
+
+    #[test]
     fn invalid_parameters_are_named() {
         let cases = [
             (

@@ -1,5 +1,5 @@
-//! The embedding table on a candle device: `[map] device = "cuda"` for the point-cloud map, and
-//! candle's CPU device in the tests.
+//! The embedding table on a candle device: `[map] device = "cuda"` for the point-cloud and voxel
+//! maps, and candle's CPU device in the tests.
 //!
 //! Why it exists: with a 512-d encoder on a GPU, the host table ([`EmbeddingStore`]) has every
 //! frame's embeddings copied back to the host and a million rows fused there while the GPU
@@ -118,28 +118,60 @@ impl<'a> FrameTable<'a> {
     /// that cancels out, as [`embedding`](crate::kit::embedding) has none there.
     pub fn push(&self, pixel: u32, lookups: &mut Lookups) -> bool {
         debug_assert_eq!(lookups.taps, self.taps());
+        let Some(pairs) = self.recipe(pixel) else {
+            return false;
+        };
+        for (cell, weight) in &pairs[..lookups.taps] {
+            lookups.cells.push(*cell);
+            lookups.weights.push(*weight);
+        }
+        true
+    }
+
+    /// Pixel `pixel`'s unit embedding as `(frame-table row, weight)` pairs: the first
+    /// [`FrameTable::taps`] are used (one of weight 1 for a segment); `None` where the pixel has
+    /// no embedding.
+    pub fn recipe(&self, pixel: u32) -> Option<[(u32, f32); 4]> {
         match (&self.sampler, self.embeddings.layout()) {
             (Some(sampler), _) => {
                 let width = self.embeddings.width();
-                let Some(pairs) = sampler.weights(pixel % width, pixel / width) else {
-                    return false;
-                };
-                for (cell, weight) in pairs {
-                    lookups.cells.push(cell);
-                    lookups.weights.push(weight);
-                }
-                true
+                sampler.weights(pixel % width, pixel / width)
             }
             (None, EmbeddingLayout::Segments { index, .. }) => match index.get(pixel as usize) {
-                Some(&s) if s != NO_SEGMENT => {
-                    lookups.cells.push(s);
-                    lookups.weights.push(1.0);
-                    true
-                }
-                _ => false,
+                Some(&s) if s != NO_SEGMENT => Some([(s, 1.0), (0, 0.0), (0, 0.0), (0, 0.0)]),
+                _ => None,
             },
-            (None, EmbeddingLayout::PatchGrid { .. }) => false,
+            (None, EmbeddingLayout::PatchGrid { .. }) => None,
         }
+    }
+
+    /// Per group `g` of `count`, the sum of `weights[i] · row cells[i]` over the pairs `i` with
+    /// `groups[i] == g` (a voxel's pixels, as the rows they are made of).
+    ///
+    /// # Errors
+    /// [`MapError::DeviceTable`] when a tensor operation fails.
+    pub fn sums(
+        &self,
+        groups: &[u32],
+        cells: &[u32],
+        weights: &[f32],
+        count: usize,
+    ) -> Result<RowSums, MapError> {
+        let sums = || -> CandleResult<Tensor> {
+            let device = self.table.device();
+            let d = self.embeddings.dim();
+            let n = cells.len();
+            let zeros = Tensor::zeros((count, d), DType::F32, device)?;
+            if n == 0 {
+                return Ok(zeros);
+            }
+            let rows = self
+                .table
+                .index_select(&Tensor::from_slice(cells, n, device)?, 0)?
+                .broadcast_mul(&Tensor::from_slice(weights, (n, 1), device)?)?;
+            zeros.index_add(&Tensor::from_slice(groups, n, device)?, &rows, 0)
+        };
+        sums().map(RowSums).map_err(table_error)
     }
 
     /// The `f32` embeddings of lookups `range` (`rows × dim`).
@@ -162,6 +194,29 @@ impl<'a> FrameTable<'a> {
             device,
         )?;
         rows.reshape((k, t, d))?.broadcast_mul(&weights)?.sum(1)
+    }
+}
+
+/// Sums of a frame's embedding rows per group (see [`FrameTable::sums`]), on the device.
+#[derive(Clone, Debug)]
+pub struct RowSums(Tensor);
+
+impl RowSums {
+    /// Per group, whether its sum has a positive, finite norm (can be normalised), copied to the
+    /// host.
+    ///
+    /// # Errors
+    /// [`MapError::DeviceTable`] when a tensor operation fails.
+    pub fn usable(&self) -> Result<Vec<bool>, MapError> {
+        let usable = || -> CandleResult<Vec<u8>> {
+            let norm = self.0.sqr()?.sum(1)?.sqrt()?;
+            norm.gt(0.0)?
+                .mul(&norm.le(f64::from(f32::MAX))?)?
+                .to_vec1::<u8>()
+        };
+        usable()
+            .map(|v| v.into_iter().map(|b| b != 0).collect())
+            .map_err(table_error)
     }
 }
 
@@ -406,6 +461,68 @@ impl DeviceTable {
         Ok(())
     }
 
+    /// Updates map row `slots[i]` with group `groups[i]` of `sums` for every `i`:
+    /// `old_weights[i] · row + sum_weights[i] · sum`, renormalised; where that cancels out, the
+    /// sum renormalised; where that cancels too, the row stays as it was (the voxel map's running
+    /// mean). No slot twice.
+    ///
+    /// # Errors
+    /// [`MapError::DeviceTable`] when a tensor operation fails.
+    pub fn blend_sums(
+        &mut self,
+        slots: &[u32],
+        sums: &RowSums,
+        groups: &[u32],
+        old_weights: &[f32],
+        sum_weights: &[f32],
+    ) -> Result<(), MapError> {
+        let k = slots.len();
+        if k == 0 {
+            return Ok(());
+        }
+        let blend = |table: &mut Self| -> CandleResult<()> {
+            let device = table.device().clone();
+            let slots = Tensor::from_slice(slots, k, &device)?;
+            let old = table.values.index_select(&slots, 0)?.to_dtype(DType::F32)?;
+            let new = sums
+                .0
+                .index_select(&Tensor::from_slice(groups, k, &device)?, 0)?;
+            let mixed = old
+                .broadcast_mul(&Tensor::from_slice(old_weights, (k, 1), &device)?)?
+                .add(&new.broadcast_mul(&Tensor::from_slice(sum_weights, (k, 1), &device)?)?)?;
+            let rows =
+                normalise_or(&mixed, &normalise_or(&new, &old)?)?.to_dtype(table.values.dtype())?;
+            table
+                .values
+                .scatter_set(&row_indexes(&slots, table.dim)?, &rows, 0)
+        };
+        blend(self).map_err(table_error)
+    }
+
+    /// Appends group `groups[i]` of `sums`, renormalised, for every `i` (each must be
+    /// [`RowSums::usable`]).
+    ///
+    /// # Errors
+    /// [`MapError::DeviceTable`] when a tensor operation fails (device memory included).
+    pub fn append_sums(&mut self, sums: &RowSums, groups: &[u32]) -> Result<(), MapError> {
+        let k = groups.len();
+        if k == 0 {
+            return Ok(());
+        }
+        let append = |table: &mut Self| -> CandleResult<()> {
+            table.ensure_capacity(table.rows + k)?;
+            let device = table.device().clone();
+            let new = sums
+                .0
+                .index_select(&Tensor::from_slice(groups, k, &device)?, 0)?;
+            let rows = normalise_or(&new, &new)?.to_dtype(table.values.dtype())?;
+            table.values.slice_set(&rows, 0, table.rows)?;
+            table.rows += k;
+            Ok(())
+        };
+        append(self).map_err(table_error)
+    }
+
     /// Keeps the first `rows` rows (the allocation stays).
     pub fn truncate(&mut self, rows: usize) {
         self.rows = self.rows.min(rows);
@@ -494,4 +611,26 @@ impl DeviceTable {
         }
         Ok(())
     }
+}
+
+/// What removing rows `dead` (descending, distinct) one by one with `swap_remove` from a table of
+/// `len` rows does, as row copies `from[i] → to[i]` followed by a truncation to `len - dead.len()`:
+/// a row moved into a dead slot may be moved again later, so each copy names the row's original
+/// index, and no row is both a source and a destination (what [`DeviceTable::move_rows`] takes).
+pub fn swap_removal_moves(len: usize, dead: &[usize]) -> (Vec<u32>, Vec<u32>) {
+    // Slot → the original row it now holds, for slots filled by a move.
+    let mut filled = std::collections::HashMap::with_capacity(dead.len());
+    let mut len = len;
+    for &d in dead {
+        let last = len - 1;
+        let moved = filled.remove(&last).unwrap_or(last);
+        if d != last {
+            filled.insert(d, moved);
+        }
+        len -= 1;
+    }
+    filled
+        .into_iter()
+        .map(|(to, from)| (from as u32, to as u32))
+        .unzip()
 }

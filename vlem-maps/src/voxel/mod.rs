@@ -35,7 +35,9 @@ use vlem_core::{
 use crate::error::MapError;
 use crate::kit::memory::hash_buckets;
 use crate::kit::{FramePixels, check_observation, check_snapshot, invalid_parameter};
-use crate::storage::EmbeddingStore;
+#[cfg(feature = "candle")]
+use crate::storage::{CHUNK_ROWS, DeviceTable, FrameTable, swap_removal_moves};
+use crate::storage::{EmbeddingStore, Table};
 
 /// The registered name.
 pub const NAME: &str = "voxel";
@@ -67,8 +69,40 @@ impl VoxelConfig {
     ///
     /// # Errors
     /// [`MapError::InvalidParameter`] (wrapped as a stage error) for out-of-range values and for a
-    /// `dim` that disagrees with the encoder.
+    /// `dim` that disagrees with the encoder; a stage error naming the device when `device` cannot
+    /// be opened (a build without `cuda`, no driver, no such GPU) or cannot hold the table.
     pub fn build(&self, encoder_dim: Option<usize>) -> Result<VoxelMap, CoreError> {
+        let dim = self.validate(encoder_dim)?;
+        let table = Table::open(NAME, self.device, dim, self.precision, self.max_voxels)?;
+        Ok(VoxelMap::with_table(self.clone(), dim, table))
+    }
+
+    /// [`VoxelConfig::build`] with the embedding table on the candle device `device`, whatever
+    /// `device` the config names: how the tests run the device table on candle's CPU.
+    ///
+    /// # Errors
+    /// As [`VoxelConfig::build`]; a stage error when the device cannot hold the table.
+    #[cfg(feature = "candle")]
+    pub fn build_on(
+        &self,
+        encoder_dim: Option<usize>,
+        device: &candle_core::Device,
+    ) -> Result<VoxelMap, CoreError> {
+        let dim = self.validate(encoder_dim)?;
+        if dim == 0 {
+            return Ok(VoxelMap::new(self.clone(), 0));
+        }
+        let table = DeviceTable::new(device, dim, self.precision, self.max_voxels)
+            .map_err(|e| e.into_core(StageKind::Map, NAME))?;
+        Ok(VoxelMap::with_table(
+            self.clone(),
+            dim,
+            Table::Device(table),
+        ))
+    }
+
+    /// Checks the parameters; returns the embedding dimension.
+    fn validate(&self, encoder_dim: Option<usize>) -> Result<usize, CoreError> {
         let invalid = |name: &'static str, reason: &str| invalid_parameter(NAME, name, reason);
         if !(self.voxel_size.is_finite() && self.voxel_size >= MIN_VOXEL_SIZE) {
             return Err(invalid(
@@ -88,8 +122,7 @@ impl VoxelConfig {
                 "must be at least 1 (or left out for no cap)",
             ));
         }
-        let dim = self.common().validate(NAME, encoder_dim)?;
-        Ok(VoxelMap::new(self.clone(), dim))
+        self.common().validate_for_device(NAME, encoder_dim)
     }
 }
 
@@ -181,7 +214,7 @@ pub struct VoxelMap {
     counts: Vec<u32>,
     /// The value of `frames` when the voxel was last observed (for eviction).
     last_seen: Vec<u32>,
-    embeddings: EmbeddingStore,
+    embeddings: Table,
     frames: usize,
 }
 
@@ -199,6 +232,31 @@ enum Outcome {
     },
     /// A new voxel with the buffer row as its embedding.
     Insert { colour: [u8; 3], count: u32 },
+}
+
+/// One voxel of a frame on the device path (see `VoxelMap::plan_on_device`).
+#[cfg(feature = "candle")]
+#[derive(Debug, Default)]
+struct DevicePlan {
+    /// Usable pixels.
+    k: u32,
+    /// Their colour sum.
+    colour: [u64; 3],
+    /// The voxel's slot, if it exists.
+    slot: Option<u32>,
+    /// Frame-table rows and their summed weights.
+    pairs: Vec<(u32, f32)>,
+}
+
+/// The existing voxels a chunk updates on the device: slot, sum group and the running mean's
+/// weights.
+#[cfg(feature = "candle")]
+#[derive(Debug, Default)]
+struct DeviceUpdate {
+    slots: Vec<u32>,
+    groups: Vec<u32>,
+    old_weights: Vec<f32>,
+    sum_weights: Vec<f32>,
 }
 
 /// Where a frame's pixel embeddings and colours come from.
@@ -303,10 +361,16 @@ fn mean_colour(old: [u8; 3], n_old: u32, new: [f64; 3], n_new: u32) -> [u8; 3] {
 }
 
 impl VoxelMap {
-    /// An empty map (use [`VoxelConfig::build`] for validated parameters).
+    /// An empty map with its table in host memory, whatever `device` the config names (use
+    /// [`VoxelConfig::build`] for validated parameters and the configured device).
     pub fn new(config: VoxelConfig, dim: usize) -> Self {
+        let table = Table::Host(EmbeddingStore::new(dim, config.precision));
+        Self::with_table(config, dim, table)
+    }
+
+    fn with_table(config: VoxelConfig, dim: usize, embeddings: Table) -> Self {
         Self {
-            embeddings: EmbeddingStore::new(dim, config.precision),
+            embeddings,
             config,
             dim,
             index: VoxelIndex::default(),
@@ -335,9 +399,22 @@ impl VoxelMap {
         &self.counts
     }
 
-    /// The `len x dim` embedding table, widened to `f32`.
-    pub fn embeddings(&self) -> Vec<f32> {
+    /// The `len x dim` embedding table, widened to `f32` (copied from the device if it is on
+    /// one).
+    ///
+    /// # Errors
+    /// [`MapError::DeviceTable`] when the copy from the device fails.
+    pub fn embeddings(&self) -> Result<Vec<f32>, MapError> {
         self.embeddings.to_f32()
+    }
+
+    /// The host table (`None` on a device), for the host paths below.
+    fn host(&self) -> Option<&EmbeddingStore> {
+        match &self.embeddings {
+            Table::Host(store) => Some(store),
+            #[cfg(feature = "candle")]
+            Table::Device(_) => None,
+        }
     }
 
     fn cap(&self) -> u32 {
@@ -393,8 +470,8 @@ impl VoxelMap {
         let (n_old, n_new) = weights(self.counts[s], k, cap);
         let total = n_old + n_new;
         let mut write_row = false;
-        if self.dim > 0 {
-            self.embeddings.row_into(s, old);
+        if let Some(store) = self.host().filter(|_| self.dim > 0) {
+            store.row_into(s, old);
             let w_old = n_old as f32 / total as f32;
             // `row` holds the sum of k embeddings, not their mean.
             let w_new = n_new as f32 / total as f32 / k as f32;
@@ -424,7 +501,13 @@ impl VoxelMap {
         obs: &Observation<'_>,
         runs: &[&[(VoxelKey, u32)]],
         stamp: u32,
-    ) -> (usize, usize) {
+    ) -> Result<(usize, usize), MapError> {
+        #[cfg(feature = "candle")]
+        if let (Table::Device(_), Some(embeddings)) =
+            (&self.embeddings, obs.embeddings.filter(|_| self.dim > 0))
+        {
+            return self.fuse_on_device(obs, embeddings, runs, stamp);
+        }
         let dim = self.dim;
         let width = dim.max(1);
         let chunk = (CHUNK_VALUES / width).max(64);
@@ -469,8 +552,11 @@ impl VoxelMap {
                         self.colours[s] = colour;
                         self.counts[s] = count;
                         self.last_seen[s] = stamp;
-                        if write_row && dim > 0 {
-                            self.embeddings.set_row(s, row);
+                        if write_row
+                            && dim > 0
+                            && let Some(store) = self.embeddings.host_mut()
+                        {
+                            store.set_row(s, row);
                         }
                         fused += 1;
                     }
@@ -478,16 +564,156 @@ impl VoxelMap {
                         let Some(&(key, _)) = run.first() else {
                             continue;
                         };
-                        self.push(key, colour, count, stamp, row);
+                        self.push(key, colour, count, stamp, Some(row));
                         inserted += 1;
                     }
                 }
             }
         }
-        (fused, inserted)
+        Ok((fused, inserted))
     }
 
-    fn push(&mut self, key: VoxelKey, colour: [u8; 3], count: u32, stamp: u32, row: &[f32]) {
+    /// [`VoxelMap::fuse`] with the table on a device: per chunk of voxels, each voxel's usable
+    /// pixels as the frame-table rows they are made of (on the host, as `Source::accumulate`
+    /// gathers them), then their sums and the running means on the device. The same outcomes as
+    /// `merge_run`: a new voxel whose sum cancels out is skipped (the one value copied back per
+    /// voxel says which), an existing voxel whose mean and sum both cancel keeps its row.
+    #[cfg(feature = "candle")]
+    fn fuse_on_device(
+        &mut self,
+        obs: &Observation<'_>,
+        embeddings: &PixelEmbeddings,
+        runs: &[&[(VoxelKey, u32)]],
+        stamp: u32,
+    ) -> Result<(usize, usize), MapError> {
+        let frame = match &self.embeddings {
+            Table::Device(table) => FrameTable::upload(embeddings, table)?,
+            Table::Host(_) => return Ok((0, 0)),
+        };
+        let (colour, cap) = (&obs.frame.colour, self.cap());
+        let (mut fused, mut inserted) = (0, 0);
+        for part in runs.chunks(CHUNK_ROWS) {
+            let plans: Vec<DevicePlan> = {
+                let this = &*self;
+                part.par_iter()
+                    .with_min_len(16)
+                    .map(|run| this.plan_on_device(&frame, colour, run))
+                    .collect()
+            };
+            // The pairs of the voxels with a usable pixel, voxel by voxel.
+            let (mut groups, mut cells, mut pair_weights) = (Vec::new(), Vec::new(), Vec::new());
+            let mut count = 0u32;
+            for plan in plans.iter().filter(|p| p.k > 0) {
+                for &(cell, weight) in &plan.pairs {
+                    groups.push(count);
+                    cells.push(cell);
+                    pair_weights.push(weight);
+                }
+                count += 1;
+            }
+            let sums = frame.sums(&groups, &cells, &pair_weights, count as usize)?;
+            let usable = sums.usable()?;
+            let mut update = DeviceUpdate::default();
+            let mut appended = Vec::new();
+            let mut group = 0u32;
+            for (run, plan) in part.iter().zip(&plans) {
+                if plan.k == 0 {
+                    continue;
+                }
+                let g = group;
+                group += 1;
+                let frame_colour = plan.colour.map(|c| c as f64 / f64::from(plan.k));
+                match plan.slot {
+                    None => {
+                        let Some(&(key, _)) = run.first() else {
+                            continue;
+                        };
+                        if !usable[g as usize] {
+                            continue;
+                        }
+                        let colour = mean_colour([0; 3], 0, frame_colour, 1);
+                        self.push(key, colour, plan.k.min(cap), stamp, None);
+                        appended.push(g);
+                        inserted += 1;
+                    }
+                    Some(slot) => {
+                        let s = slot as usize;
+                        let (n_old, n_new) = weights(self.counts[s], plan.k, cap);
+                        let total = n_old + n_new;
+                        update.slots.push(slot);
+                        update.groups.push(g);
+                        update.old_weights.push(n_old as f32 / total as f32);
+                        // The sum of k embeddings, not their mean.
+                        update
+                            .sum_weights
+                            .push(n_new as f32 / total as f32 / plan.k as f32);
+                        self.colours[s] = mean_colour(self.colours[s], n_old, frame_colour, n_new);
+                        self.counts[s] = total;
+                        self.last_seen[s] = stamp;
+                        fused += 1;
+                    }
+                }
+            }
+            if let Table::Device(table) = &mut self.embeddings {
+                table.blend_sums(
+                    &update.slots,
+                    &sums,
+                    &update.groups,
+                    &update.old_weights,
+                    &update.sum_weights,
+                )?;
+                table.append_sums(&sums, &appended)?;
+            }
+        }
+        Ok((fused, inserted))
+    }
+
+    /// One voxel's usable pixels (`run`) for the device path: their count, colour sum, the
+    /// voxel's slot if it exists, and the frame-table rows with their summed weights.
+    #[cfg(feature = "candle")]
+    fn plan_on_device(
+        &self,
+        frame: &FrameTable<'_>,
+        colour: &RgbImage,
+        run: &[(VoxelKey, u32)],
+    ) -> DevicePlan {
+        let mut plan = DevicePlan {
+            slot: run
+                .first()
+                .and_then(|(key, _)| self.index.get(key).copied()),
+            ..DevicePlan::default()
+        };
+        let taps = frame.taps();
+        for &(_, pixel) in run {
+            let Some(recipe) = frame.recipe(pixel) else {
+                continue;
+            };
+            // A voxel's pixels share a few segments or grid rows: each row once, weights summed.
+            for &(cell, weight) in recipe[..taps].iter().filter(|(_, w)| *w != 0.0) {
+                match plan.pairs.iter_mut().find(|(c, _)| *c == cell) {
+                    Some((_, total)) => *total += weight,
+                    None => plan.pairs.push((cell, weight)),
+                }
+            }
+            let c = colour.at_index(pixel as usize);
+            for (acc, x) in plan.colour.iter_mut().zip(c) {
+                *acc += u64::from(x);
+            }
+            plan.k = plan.k.saturating_add(1);
+        }
+        plan
+    }
+
+    /// Adds a voxel; its embedding `row` goes into the host table (a device table's rows are
+    /// appended by the caller, `row` then `None`).
+    fn push(
+        &mut self,
+        key: VoxelKey,
+        colour: [u8; 3],
+        count: u32,
+        stamp: u32,
+        row: Option<&[f32]>,
+    ) {
         // The budget check keeps the count far below u32::MAX.
         self.index.insert(key, self.keys.len() as u32);
         // Right after an insertion that grew the table there are no tombstones: the full capacity.
@@ -496,8 +722,10 @@ impl VoxelMap {
         self.colours.push(colour);
         self.counts.push(count);
         self.last_seen.push(stamp);
-        if self.dim > 0 {
-            self.embeddings.push(row);
+        if self.dim > 0
+            && let (Some(store), Some(row)) = (self.embeddings.host_mut(), row)
+        {
+            store.push(row);
         }
     }
 
@@ -505,7 +733,7 @@ impl VoxelMap {
     /// older voxels (the least recently observed first) to make room for the frame's new ones, so
     /// the tables do not grow past the budget and the memory stays bounded. Returns the number
     /// evicted.
-    fn make_room(&mut self, runs: &[&[(VoxelKey, u32)]], stamp: u32) -> usize {
+    fn make_room(&mut self, runs: &[&[(VoxelKey, u32)]], stamp: u32) -> Result<usize, MapError> {
         let existing: Vec<Option<u32>> = runs
             .par_iter()
             .with_min_len(1024)
@@ -525,10 +753,10 @@ impl VoxelMap {
     /// are broken by slot, deterministically) until at most `target` remain, or, with
     /// `seen_before`, until no voxel observed before that stamp is left. Returns the number
     /// evicted.
-    fn evict(&mut self, target: usize, seen_before: Option<u32>) -> usize {
+    fn evict(&mut self, target: usize, seen_before: Option<u32>) -> Result<usize, MapError> {
         let len = self.keys.len();
         if len <= target {
-            return 0;
+            return Ok(0);
         }
         let limit = seen_before.unwrap_or(u32::MAX);
         // Index stored as u32::MAX - i so that ascending order takes later slots first on ties.
@@ -540,7 +768,7 @@ impl VoxelMap {
             .collect();
         let excess = (len - target).min(order.len());
         if excess == 0 {
-            return 0;
+            return Ok(0);
         }
         if excess < order.len() {
             order.select_nth_unstable(excess - 1);
@@ -551,14 +779,24 @@ impl VoxelMap {
             .collect();
         // Descending, so the voxel moved into a dead slot is always a live one.
         dead.sort_unstable_by(|a, b| b.cmp(a));
+        #[cfg(feature = "candle")]
+        if let Table::Device(table) = &mut self.embeddings
+            && self.dim > 0
+        {
+            let (from, to) = swap_removal_moves(len, &dead);
+            table.move_rows(&from, &to)?;
+            table.truncate(len - dead.len());
+        }
         for d in dead {
             self.index.remove(&self.keys[d]);
             self.keys.swap_remove(d);
             self.colours.swap_remove(d);
             self.counts.swap_remove(d);
             self.last_seen.swap_remove(d);
-            if self.dim > 0 {
-                self.embeddings.swap_remove(d);
+            if self.dim > 0
+                && let Some(store) = self.embeddings.host_mut()
+            {
+                store.swap_remove(d);
             }
             if let Some(moved) = self.keys.get(d)
                 && let Some(slot) = self.index.get_mut(moved)
@@ -566,7 +804,7 @@ impl VoxelMap {
                 *slot = d as u32;
             }
         }
-        excess
+        Ok(excess)
     }
 }
 
@@ -593,10 +831,11 @@ impl EmbeddingMap for VoxelMap {
         }
         let runs: Vec<&[(VoxelKey, u32)]> = pixels.chunk_by(|a, b| a.0 == b.0).collect();
         let stamp = u32::try_from(self.frames).unwrap_or(u32::MAX);
-        stats.removed = self.make_room(&runs, stamp);
-        (stats.fused, stats.inserted) = self.fuse(obs, &runs, stamp);
+        let core = |e: MapError| e.into_core(StageKind::Map, NAME);
+        stats.removed = self.make_room(&runs, stamp).map_err(core)?;
+        (stats.fused, stats.inserted) = self.fuse(obs, &runs, stamp).map_err(core)?;
         // Only when the frame alone brings more new voxels than the budget.
-        stats.removed += self.evict(self.config.max_voxels, None);
+        stats.removed += self.evict(self.config.max_voxels, None).map_err(core)?;
         Ok(stats)
     }
 
@@ -616,12 +855,16 @@ impl EmbeddingMap for VoxelMap {
         // The hash map: one key, one value and one control byte per bucket.
         let buckets = hash_buckets(self.index_capacity.max(self.index.capacity()));
         let table = buckets * (size_of::<(VoxelKey, u32)>() + 1);
-        self.embeddings.memory_bytes()
+        self.embeddings.host_bytes()
             + self.keys.capacity() * size_of::<VoxelKey>()
             + self.colours.capacity() * 3
             + self.counts.capacity() * 4
             + self.last_seen.capacity() * 4
             + table
+    }
+
+    fn device_memory_bytes(&self) -> usize {
+        self.embeddings.device_bytes()
     }
 
     fn similarity(&self, text: &[f32], out: &mut Vec<f32>) -> vlem_core::Result<()> {
@@ -646,7 +889,10 @@ impl EmbeddingMap for VoxelMap {
             dim: self.dim,
             positions: self.positions(),
             colours: self.colours.clone(),
-            embeddings: self.embeddings.to_f32(),
+            embeddings: self
+                .embeddings
+                .to_f32()
+                .map_err(|e| e.into_core(StageKind::Map, NAME))?,
             metadata: MapMetadata {
                 frames_integrated: self.frames,
                 ..MapMetadata::default()
@@ -668,14 +914,16 @@ impl EmbeddingMap for VoxelMap {
             let key = VoxelKey::of_centre(p, size);
             let row = &snapshot.embeddings[i * d..(i + 1) * d];
             let Some(&slot) = map.index.get(&key) else {
-                map.push(key, colour, 1, stamp, row);
+                map.push(key, colour, 1, stamp, Some(row));
                 continue;
             };
             let s = slot as usize;
             let (n_old, n_new) = weights(map.counts[s], 1, cap);
             let total = n_old + n_new;
-            if d > 0 {
-                map.embeddings.row_into(s, &mut merged);
+            if d > 0
+                && let Some(store) = map.embeddings.host_mut()
+            {
+                store.row_into(s, &mut merged);
                 let (w_old, w_new) = (n_old as f32 / total as f32, n_new as f32 / total as f32);
                 for (m, x) in merged.iter_mut().zip(row) {
                     *m = w_old * *m + w_new * x;
@@ -683,12 +931,21 @@ impl EmbeddingMap for VoxelMap {
                 if !normalise(&mut merged) {
                     merged.copy_from_slice(row);
                 }
-                map.embeddings.set_row(s, &merged);
+                store.set_row(s, &merged);
             }
             map.colours[s] = mean_colour(map.colours[s], n_old, colour.map(f64::from), n_new);
             map.counts[s] = total;
         }
-        let _ = map.evict(map.config.max_voxels, None);
+        // Built on the host; a device map's rows then go to its table.
+        let core = |e: MapError| e.into_core(StageKind::Map, NAME);
+        map.evict(map.config.max_voxels, None).map_err(core)?;
+        let rows = map.embeddings.to_f32().map_err(core)?;
+        let mut table = std::mem::replace(
+            &mut self.embeddings,
+            Table::Host(EmbeddingStore::new(0, self.config.precision)),
+        );
+        table.replace(rows).map_err(core)?;
+        map.embeddings = table;
         *self = map;
         Ok(())
     }
@@ -754,7 +1011,7 @@ mod tests {
     fn assert_rows(m: &VoxelMap, expected: &[f32]) {
         let mut e = expected.to_vec();
         normalise(&mut e);
-        for row in m.embeddings().chunks_exact(DIM) {
+        for row in m.embeddings().unwrap().chunks_exact(DIM) {
             assert!(
                 row.iter().zip(&e).all(|(a, b)| (a - b).abs() < 1e-6),
                 "{row:?} != {e:?}"
@@ -939,12 +1196,12 @@ mod tests {
         assert!(distinct > 10, "the test needs distinct scores");
         let (full, half) = (&maps[0], &maps[1]);
         assert_eq!(
-            full.embeddings.memory_bytes(),
-            2 * half.embeddings.memory_bytes()
+            full.embeddings.host_bytes(),
+            2 * half.embeddings.host_bytes()
         );
         assert_eq!(
             full.memory_bytes() - half.memory_bytes(),
-            half.embeddings.memory_bytes()
+            half.embeddings.host_bytes()
         );
         assert!(half.memory_bytes() / half.len() < full.memory_bytes() / full.len());
     }
@@ -1045,7 +1302,7 @@ mod tests {
         assert_eq!(fresh.counts(), &[2, 1]);
         assert_eq!(fresh.snapshot().unwrap().colours[0], [50, 50, 50]);
         assert_eq!(fresh.positions()[0], [0.025, 0.025, 0.025]);
-        let e = fresh.embeddings();
+        let e = fresh.embeddings().unwrap();
         assert!((e[0] - 0.5f32.sqrt()).abs() < 1e-3 && (e[1] - 0.5f32.sqrt()).abs() < 1e-3);
         // The budget holds after a restore too.
         let mut small = coarse(1);
@@ -1117,7 +1374,7 @@ mod tests {
             }
         }
         assert_eq!(expected.len(), m.len());
-        let rows = m.embeddings();
+        let rows = m.embeddings().unwrap();
         for (i, key) in m.keys.iter().enumerate() {
             let mut want = expected[key].clone();
             normalise(&mut want);
