@@ -101,6 +101,23 @@ pub mod dinov3;
 #[cfg(feature = "naradio")]
 pub mod naradio;
 
+// The one attention layer of the candle models.
+#[cfg(any(
+    feature = "clip",
+    feature = "dinov3",
+    feature = "naradio",
+    feature = "sam"
+))]
+#[cfg_attr(
+    not(all(feature = "sam", feature = "clip", feature = "naradio")),
+    allow(
+        dead_code,
+        reason = "each model uses some of the options: SAM the separate inputs and relative \
+                  positions, NARADIO the key-key scores, CLIP and the ViTs the fused inputs"
+    )
+)]
+pub(crate) mod attention;
+
 // The ViT building blocks shared by the candle patch encoders.
 #[cfg(any(feature = "dinov3", feature = "naradio"))]
 #[cfg_attr(

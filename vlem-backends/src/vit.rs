@@ -11,6 +11,8 @@ use std::collections::HashMap;
 use candle_core::{D, DType, Device, Tensor};
 use candle_nn::{LayerNorm, Module};
 
+use crate::attention::Scores;
+
 /// A transformer MLP activation, from `hidden_act` in `config.json`.
 #[derive(Clone, Copy, Debug, PartialEq, Eq)]
 pub enum Activation {
@@ -240,50 +242,25 @@ impl Rope {
     }
 }
 
-/// Multi-head self-attention with the query, key and value projections fused into one matrix
-/// product, optional RoPE on the patch tokens and an optional causal mask.
-#[derive(Clone, Debug)]
-pub(crate) struct Attention {
-    pub(crate) qkv: Linear,
-    pub(crate) out: Linear,
-    pub(crate) heads: usize,
+/// The ViTs' multi-head self-attention: the shared layer with the query, key and value
+/// projections fused into one matrix product (optional RoPE, optional causal mask).
+pub(crate) type Attention = crate::attention::Attention<Linear>;
+
+impl crate::attention::Project for Linear {
+    fn project(&self, x: &Tensor) -> candle_core::Result<Tensor> {
+        self.forward(x)
+    }
 }
 
-impl Attention {
-    /// `x`: `(batch, tokens, width)`.
-    pub(crate) fn forward(
-        &self,
-        x: &Tensor,
-        rope: Option<&Rope>,
-        mask: Option<&Tensor>,
-    ) -> candle_core::Result<Tensor> {
-        let (batch, tokens, width) = x.dims3()?;
-        let head_dim = width / self.heads;
-        let qkv = self
-            .qkv
-            .forward(x)?
-            .reshape((batch, tokens, 3, self.heads, head_dim))?
-            .permute((2, 0, 3, 1, 4))?; // (3, batch, heads, tokens, head_dim)
-        let mut q = qkv.get(0)?.contiguous()?;
-        let mut k = qkv.get(1)?.contiguous()?;
-        let v = qkv.get(2)?.contiguous()?;
-        if let Some(rope) = rope {
-            q = rope.apply(&q)?;
-            k = rope.apply(&k)?;
-        }
-        let q = (q * (head_dim as f64).powf(-0.5))?;
-        let logits = q.matmul(&k.t()?)?;
-        let logits = match mask {
-            Some(m) => logits.broadcast_add(m)?,
-            None => logits,
-        };
-        let weights = crate::kernels::softmax_last_dim(&logits)?;
-        let mixed = weights
-            .matmul(&v)?
-            .transpose(1, 2)?
-            .reshape((batch, tokens, width))?;
-        self.out.forward(&mixed)
+impl crate::attention::Rotate for Rope {
+    fn rotate(&self, x: &Tensor) -> candle_core::Result<Tensor> {
+        self.apply(x)
     }
+}
+
+/// An attention layer of `heads` heads with a fused `qkv` projection and an `out` projection.
+pub(crate) fn fused_attention(qkv: Linear, out: Linear, heads: usize) -> Attention {
+    Attention::new(crate::attention::Inputs::Fused(qkv), out, heads)
 }
 
 /// A transformer MLP: plain (`down(act(up x))`) or gated (`down(act(gate x) ⊙ up x)`).
@@ -339,9 +316,11 @@ impl Block {
             Some(s) => y.broadcast_mul(s),
             None => Ok(y),
         };
+        let scores = mask.map_or(Scores::Plain, Scores::Bias);
+        let rope = rope.map(|r| r as &dyn crate::attention::Rotate);
         let a = self
             .attention
-            .forward(&self.norm1.forward(x)?, rope, mask)?;
+            .forward(&self.norm1.forward(x)?, rope, scores)?;
         let x = (x + scaled(a, &self.scale1)?)?;
         let m = self.mlp.forward(&self.norm2.forward(&x)?)?;
         x + scaled(m, &self.scale2)?

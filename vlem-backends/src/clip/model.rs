@@ -21,6 +21,7 @@ use candle_nn::{Embedding, LayerNorm, VarBuilder};
 use serde_json::{Map, Value};
 use tokenizers::{Tokenizer, TruncationParams};
 
+use crate::attention::Scores;
 use crate::error::BackendError;
 
 /// The model's name in messages.
@@ -403,60 +404,30 @@ impl Linear {
     }
 }
 
-/// Multi-head self-attention with the three input projections fused into one.
-#[derive(Clone, Debug)]
-struct Attention {
-    qkv: Linear,
-    out: Linear,
-    heads: usize,
-    head_dim: usize,
-    scale: f64,
+impl crate::attention::Project for Linear {
+    fn project(&self, x: &Tensor) -> candle_core::Result<Tensor> {
+        self.forward(x)
+    }
 }
 
-impl Attention {
-    fn load(vb: &VarBuilder, width: usize, heads: usize) -> candle_core::Result<Self> {
-        let part = |name: &str| -> candle_core::Result<(Tensor, Tensor)> {
-            let p = vb.pp(name);
-            Ok((p.get((width, width), "weight")?, p.get(width, "bias")?))
-        };
-        let (qw, qb) = part("q_proj")?;
-        let (kw, kb) = part("k_proj")?;
-        let (vw, vbias) = part("v_proj")?;
-        let weight = Tensor::cat(&[&qw, &kw, &vw], 0)?;
-        let bias = Tensor::cat(&[&qb, &kb, &vbias], 0)?;
-        let head_dim = width / heads;
-        Ok(Self {
-            qkv: Linear::from_parts(&weight, Some(bias))?,
-            out: Linear::load(&vb.pp("out_proj"), width, width, true)?,
-            heads,
-            head_dim,
-            scale: (head_dim as f64).powf(-0.5),
-        })
-    }
+/// CLIP's multi-head self-attention: the shared layer, its three input projections fused into one.
+type Attention = crate::attention::Attention<Linear>;
 
-    /// `x`: `(batch, len, width)`; `mask`: `(len, len)` added to the attention logits.
-    fn forward(&self, x: &Tensor, mask: Option<&Tensor>) -> candle_core::Result<Tensor> {
-        let (batch, len, width) = x.dims3()?;
-        let qkv = self
-            .qkv
-            .forward(x)?
-            .reshape((batch, len, 3, self.heads, self.head_dim))?
-            .permute((2, 0, 3, 1, 4))?; // (3, batch, heads, len, head_dim)
-        let q = (qkv.i(0)?.contiguous()? * self.scale)?;
-        let k = qkv.i(1)?.contiguous()?;
-        let v = qkv.i(2)?.contiguous()?;
-        let logits = q.matmul(&k.t()?)?; // (batch, heads, len, len)
-        let logits = match mask {
-            Some(m) => logits.broadcast_add(m)?,
-            None => logits,
-        };
-        let weights = crate::kernels::softmax_last_dim(&logits)?;
-        let mixed = weights
-            .matmul(&v)?
-            .transpose(1, 2)?
-            .reshape((batch, len, width))?;
-        self.out.forward(&mixed)
-    }
+fn load_attention(vb: &VarBuilder, width: usize, heads: usize) -> candle_core::Result<Attention> {
+    let part = |name: &str| -> candle_core::Result<(Tensor, Tensor)> {
+        let p = vb.pp(name);
+        Ok((p.get((width, width), "weight")?, p.get(width, "bias")?))
+    };
+    let (qw, qb) = part("q_proj")?;
+    let (kw, kb) = part("k_proj")?;
+    let (vw, vbias) = part("v_proj")?;
+    let weight = Tensor::cat(&[&qw, &kw, &vw], 0)?;
+    let bias = Tensor::cat(&[&qb, &kb, &vbias], 0)?;
+    Ok(Attention::new(
+        crate::attention::Inputs::Fused(Linear::from_parts(&weight, Some(bias))?),
+        Linear::load(&vb.pp("out_proj"), width, width, true)?,
+        heads,
+    ))
 }
 
 /// One pre-norm transformer layer (`CLIPEncoderLayer`).
@@ -481,7 +452,7 @@ impl Layer {
     ) -> candle_core::Result<Self> {
         Ok(Self {
             norm1: candle_nn::layer_norm(width, eps, vb.pp("layer_norm1"))?,
-            attention: Attention::load(&vb.pp("self_attn"), width, heads)?,
+            attention: load_attention(&vb.pp("self_attn"), width, heads)?,
             norm2: candle_nn::layer_norm(width, eps, vb.pp("layer_norm2"))?,
             fc1: Linear::load(&vb.pp("mlp").pp("fc1"), width, mlp, true)?,
             fc2: Linear::load(&vb.pp("mlp").pp("fc2"), mlp, width, true)?,
@@ -490,7 +461,10 @@ impl Layer {
     }
 
     fn forward(&self, x: &Tensor, mask: Option<&Tensor>) -> candle_core::Result<Tensor> {
-        let x = (x + self.attention.forward(&self.norm1.forward(x)?, mask)?)?;
+        let scores = mask.map_or(Scores::Plain, Scores::Bias);
+        let x = (x + self
+            .attention
+            .forward(&self.norm1.forward(x)?, None, scores)?)?;
         let h = self.fc1.forward(&self.norm2.forward(&x)?)?;
         let h = self.fc2.forward(&self.act.apply(&h)?)?;
         x + h

@@ -27,7 +27,7 @@ use candle_nn::{LayerNorm, Module};
 
 use super::model::BackboneOutput;
 use crate::error::BackendError;
-use crate::vit::{Activation, Attention, Block, Linear, Mlp, Weights};
+use crate::vit::{Activation, Block, Linear, Mlp, Weights, fused_attention};
 
 /// The checkpoint's name in messages.
 pub const MODEL: &str = "dino.txt";
@@ -147,11 +147,11 @@ impl DinoTxtHeads {
                 };
                 Ok(Block {
                     norm1: w.layer_norm(&format!("{p}.norm1"), width, eps)?,
-                    attention: Attention {
-                        qkv: w.linear(&format!("{p}.attn.qkv"), width, 3 * width, false)?,
-                        out: w.linear(&format!("{p}.attn.proj"), width, width, true)?,
-                        heads: vision_heads,
-                    },
+                    attention: fused_attention(
+                        w.linear(&format!("{p}.attn.qkv"), width, 3 * width, false)?,
+                        w.linear(&format!("{p}.attn.proj"), width, width, true)?,
+                        vision_heads,
+                    ),
                     scale1: Some(w.get(&format!("{p}.ls1.gamma"), &[width])?),
                     norm2: w.layer_norm(&format!("{p}.norm2"), width, eps)?,
                     mlp: Mlp::Gated {
@@ -195,11 +195,11 @@ impl DinoTxtHeads {
                 };
                 Ok(Block {
                     norm1: w.layer_norm(&format!("{p}.attention_norm"), dim, eps)?,
-                    attention: Attention {
-                        qkv: w.linear(&format!("{p}.attention.qkv"), dim, 3 * dim, false)?,
-                        out: w.linear(&format!("{p}.attention.proj"), dim, dim, true)?,
+                    attention: fused_attention(
+                        w.linear(&format!("{p}.attention.qkv"), dim, 3 * dim, false)?,
+                        w.linear(&format!("{p}.attention.proj"), dim, dim, true)?,
                         heads,
-                    },
+                    ),
                     scale1: None,
                     norm2: w.layer_norm(&format!("{p}.ffn_norm"), dim, eps)?,
                     mlp: Mlp::Plain {

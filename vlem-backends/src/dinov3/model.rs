@@ -32,7 +32,7 @@ use serde_json::{Map, Value};
 
 use crate::error::BackendError;
 pub use crate::vit::{Activation, rope_angles};
-use crate::vit::{Attention, Block, Linear, Mlp, Rope, Weights};
+use crate::vit::{Block, Linear, Mlp, Rope, Weights, fused_attention};
 
 /// The model's name in messages.
 pub const MODEL: &str = "DINOv3 ViT";
@@ -521,11 +521,11 @@ fn load_hf_layer(w: &Weights, prefix: &str, c: &Dinov3Config) -> Result<Block, S
     let fused = |ts: [&Tensor; 3]| Tensor::cat(&ts, 0).map_err(|e| e.to_string());
     let qkv = Linear::new(&fused([&qw, &kw, &vw])?, Some(fused([&qb, &kb, &vb])?))
         .map_err(|e| e.to_string())?;
-    let attention = Attention {
+    let attention = fused_attention(
         qkv,
-        out: w.linear(&format!("{a}.o_proj"), h, h, c.proj_bias)?,
-        heads: c.num_attention_heads,
-    };
+        w.linear(&format!("{a}.o_proj"), h, h, c.proj_bias)?,
+        c.num_attention_heads,
+    );
     let m = format!("{prefix}.mlp");
     let i = c.intermediate_size;
     let mlp = if c.use_gated_mlp {

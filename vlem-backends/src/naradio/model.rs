@@ -15,8 +15,9 @@ use candle_core::{D, DType, Device, Tensor};
 use candle_nn::{LayerNorm, Module};
 use serde::Deserialize;
 
+use crate::attention::Scores;
 use crate::error::BackendError;
-use crate::vit::{Activation, Attention, Block, Linear, Mlp, Weights};
+use crate::vit::{Activation, Attention, Block, Linear, Mlp, Weights, fused_attention};
 
 /// The model name in error messages.
 pub const MODEL: &str = "NARADIO (RADIOv2.5 + SigLIP)";
@@ -361,11 +362,11 @@ impl RadioModel {
             };
             blocks.push(Block {
                 norm1: w.layer_norm(&format!("{b}.norm1"), e, eps)?,
-                attention: Attention {
-                    qkv: w.linear(&format!("{b}.attn.qkv"), e, 3 * e, c.qkv_bias)?,
-                    out: w.linear(&format!("{b}.attn.proj"), e, e, true)?,
-                    heads: c.num_heads,
-                },
+                attention: fused_attention(
+                    w.linear(&format!("{b}.attn.qkv"), e, 3 * e, c.qkv_bias)?,
+                    w.linear(&format!("{b}.attn.proj"), e, e, true)?,
+                    c.num_heads,
+                ),
                 scale1: scale("ls1")?,
                 norm2: w.layer_norm(&format!("{b}.norm2"), e, eps)?,
                 mlp: Mlp::Plain {
@@ -754,24 +755,7 @@ pub(crate) fn naclip_attention(
     x: &Tensor,
     prior: &Tensor,
 ) -> candle_core::Result<Tensor> {
-    let (batch, tokens, width) = x.dims3()?;
-    let heads = attention.heads;
-    let head_dim = width / heads;
-    let qkv = attention
-        .qkv
-        .forward(x)?
-        .reshape((batch, tokens, 3, heads, head_dim))?
-        .permute((2, 0, 3, 1, 4))?; // (3, batch, heads, tokens, head_dim)
-    let k = qkv.get(1)?.contiguous()?;
-    let v = qkv.get(2)?.contiguous()?;
-    let logits = (k.matmul(&k.t()?)? * (head_dim as f64).powf(-0.5))?;
-    let logits = logits.broadcast_add(&prior.to_dtype(DType::F32)?)?;
-    let weights = crate::kernels::softmax_last_dim(&logits)?;
-    let mixed = weights
-        .matmul(&v)?
-        .transpose(1, 2)?
-        .reshape((batch, tokens, width))?;
-    attention.out.forward(&mixed)
+    attention.forward(x, None, Scores::KeyKey { prior })
 }
 
 /// [`naclip_attention`] on one image of `tokens × width` values `x` with a given fused qkv
@@ -791,11 +775,11 @@ pub fn naclip_attention_for_test(
         let tokens = x.len() / width.max(1);
         let w = Tensor::from_slice(qkv_weight, (3 * width, width), &device)?;
         let b = Tensor::from_slice(qkv_bias, 3 * width, &device)?;
-        let attention = Attention {
-            qkv: Linear::new(&w, Some(b))?,
-            out: Linear::new(&Tensor::eye(width, DType::F32, &device)?, None)?,
+        let attention = fused_attention(
+            Linear::new(&w, Some(b))?,
+            Linear::new(&Tensor::eye(width, DType::F32, &device)?, None)?,
             heads,
-        };
+        );
         let x = Tensor::from_slice(x, (1, tokens, width), &device)?;
         let prior = Tensor::from_slice(prior, (tokens, tokens), &device)?;
         naclip_attention(&attention, &x, &prior)?

@@ -15,8 +15,9 @@ use candle_nn::{LayerNorm, Linear, VarBuilder};
 
 use super::image::INPUT_SIZE;
 use super::image_side::{self, ImageToToken, TokenToImage};
-use super::layers::{LayerNorm2d, apply_linear, cat_last, gelu, layer_norm, linear, softmax_last};
+use super::layers::{LayerNorm2d, apply_linear, cat_last, gelu, layer_norm, linear};
 use super::mask_head::FusedMaskHead;
+use crate::attention::{Attention, Inputs, Scores};
 
 /// Channels of image embeddings and prompt tokens.
 pub const EMBED_DIM: usize = 256;
@@ -112,59 +113,42 @@ impl PromptEncoder {
     }
 }
 
-#[derive(Debug)]
-struct Attention {
-    q: Linear,
-    k: Linear,
-    v: Linear,
-    out: Linear,
-    internal: usize,
-}
-
-impl Attention {
-    fn new(vb: VarBuilder, dim: usize, downsample: usize) -> Result<Self> {
-        let internal = dim / downsample;
-        Ok(Self {
+/// The decoder's attention: the shared layer with separate query, key and value inputs, its
+/// internal width the token width over `downsample`.
+fn decoder_attention(vb: VarBuilder, dim: usize, downsample: usize) -> Result<Attention<Linear>> {
+    let internal = dim / downsample;
+    Ok(Attention::new(
+        Inputs::Separate {
             q: linear(vb.pp("q_proj"), dim, internal)?,
             k: linear(vb.pp("k_proj"), dim, internal)?,
             v: linear(vb.pp("v_proj"), dim, internal)?,
-            out: linear(vb.pp("out_proj"), internal, dim)?,
-            internal,
+        },
+        linear(vb.pp("out_proj"), internal, dim)?,
+        HEADS,
+    ))
+}
+
+/// One of a decoder attention's input projections: 0 the query's, 1 the key's, 2 the value's.
+fn projection(attention: &Attention<Linear>, which: usize) -> Result<&Linear> {
+    attention
+        .separate_inputs()
+        .and_then(|p| p.get(which).copied())
+        .ok_or_else(|| {
+            candle_core::Error::Msg("the decoder's attention has separate inputs".into())
         })
-    }
-
-    fn heads(&self, x: &Tensor) -> Result<Tensor> {
-        let (b, n, _) = x.dims3()?;
-        x.reshape((b, n, HEADS, self.internal / HEADS))?
-            .transpose(1, 2)?
-            .contiguous()
-    }
-
-    /// Attention with `(B or 1, N, C)` inputs; a batch of 1 broadcasts against the others.
-    fn forward(&self, q: &Tensor, k: &Tensor, v: &Tensor) -> Result<Tensor> {
-        let q = self.heads(&apply_linear(&self.q, q)?)?;
-        let k = self.heads(&apply_linear(&self.k, k)?)?;
-        let v = self.heads(&apply_linear(&self.v, v)?)?;
-        let scale = 1.0 / ((self.internal / HEADS) as f64).sqrt();
-        let scores = (q.broadcast_matmul(&k.t()?)? * scale)?;
-        let out = softmax_last(&scores)?.broadcast_matmul(&v)?;
-        let (b, h, n, c) = out.dims4()?;
-        let out = out.transpose(1, 2)?.reshape((b, n, h * c))?;
-        apply_linear(&self.out, &out)
-    }
 }
 
 #[derive(Debug)]
 struct TwoWayBlock {
-    self_attn: Attention,
+    self_attn: Attention<Linear>,
     norm1: LayerNorm,
-    cross_t2i: Attention,
+    cross_t2i: Attention<Linear>,
     norm2: LayerNorm,
     lin1: Linear,
     lin2: Linear,
     norm3: LayerNorm,
     norm4: LayerNorm,
-    cross_i2t: Attention,
+    cross_i2t: Attention<Linear>,
     skip_first_pe: bool,
 }
 
@@ -172,15 +156,15 @@ impl TwoWayBlock {
     fn new(vb: VarBuilder, skip_first_pe: bool) -> Result<Self> {
         let d = EMBED_DIM;
         Ok(Self {
-            self_attn: Attention::new(vb.pp("self_attn"), d, 1)?,
+            self_attn: decoder_attention(vb.pp("self_attn"), d, 1)?,
             norm1: layer_norm(vb.pp("norm1"), d, 1e-5)?,
-            cross_t2i: Attention::new(vb.pp("cross_attn_token_to_image"), d, 2)?,
+            cross_t2i: decoder_attention(vb.pp("cross_attn_token_to_image"), d, 2)?,
             norm2: layer_norm(vb.pp("norm2"), d, 1e-5)?,
             lin1: linear(vb.pp("mlp").pp("lin1"), d, MLP_DIM)?,
             lin2: linear(vb.pp("mlp").pp("lin2"), MLP_DIM, d)?,
             norm3: layer_norm(vb.pp("norm3"), d, 1e-5)?,
             norm4: layer_norm(vb.pp("norm4"), d, 1e-5)?,
-            cross_i2t: Attention::new(vb.pp("cross_attn_image_to_token"), d, 2)?,
+            cross_i2t: decoder_attention(vb.pp("cross_attn_image_to_token"), d, 2)?,
             skip_first_pe,
         })
     }
@@ -188,10 +172,11 @@ impl TwoWayBlock {
     /// The tokens' self-attention (with its residual unless first) and its norm.
     fn attend_self(&self, queries: &Tensor, query_pe: &Tensor) -> Result<Tensor> {
         let queries = if self.skip_first_pe {
-            self.self_attn.forward(queries, queries, queries)?
+            self.self_attn
+                .forward_qkv(queries, queries, queries, Scores::Plain)?
         } else {
             let q = (queries + query_pe)?;
-            (queries + self.self_attn.forward(&q, &q, queries)?)?
+            (queries + self.self_attn.forward_qkv(&q, &q, queries, Scores::Plain)?)?
         };
         self.norm1.forward(&queries)
     }
@@ -213,11 +198,13 @@ impl TwoWayBlock {
         let queries = self.attend_self(queries, query_pe)?;
         let q = (&queries + query_pe)?;
         let k = keys.broadcast_add(key_pe)?;
-        let attn = self.cross_t2i.forward(&q, &k, keys)?;
+        let attn = self.cross_t2i.forward_qkv(&q, &k, keys, Scores::Plain)?;
         let queries = self.after_token_to_image(&queries, &attn)?;
 
         let q = (&queries + query_pe)?;
-        let attn = self.cross_i2t.forward(&k, &q, &queries)?;
+        let attn = self
+            .cross_i2t
+            .forward_qkv(&k, &q, &queries, Scores::Plain)?;
         let keys = self.norm4.forward(&keys.broadcast_add(&attn)?)?;
         Ok((queries, keys))
     }
@@ -257,7 +244,7 @@ impl Mlp {
 pub struct MaskDecoder {
     output_tokens: Tensor,
     layers: Vec<TwoWayBlock>,
-    final_t2i: Attention,
+    final_t2i: Attention<Linear>,
     norm_final: LayerNorm,
     up1: UpConv2x2,
     up_ln: LayerNorm2d,
@@ -306,7 +293,7 @@ impl MaskDecoder {
         } else {
             None
         };
-        let final_t2i = Attention::new(t.pp("final_attn_token_to_image"), d, 2)?;
+        let final_t2i = decoder_attention(t.pp("final_attn_token_to_image"), d, 2)?;
         let fused = match head {
             Some(head) => Some(Fused {
                 token_to_image: layers
@@ -314,11 +301,13 @@ impl MaskDecoder {
                     .skip(1)
                     .map(|l| &l.cross_t2i)
                     .chain([&final_t2i])
-                    .map(|a| TokenToImage::new(&a.k, &a.v))
+                    .map(|a| TokenToImage::new(projection(a, 1)?, projection(a, 2)?))
                     .collect::<Result<Vec<_>>>()?,
                 image_to_token: layers
                     .iter()
-                    .map(|l| ImageToToken::new(&l.cross_i2t.q, &l.cross_i2t.out, &l.norm4))
+                    .map(|l| {
+                        ImageToToken::new(projection(&l.cross_i2t, 0)?, l.cross_i2t.out(), &l.norm4)
+                    })
                     .collect::<Result<Vec<_>>>()?,
                 head,
             }),
@@ -379,7 +368,7 @@ impl MaskDecoder {
         let k = keys.broadcast_add(key_pe)?;
         let queries = self
             .norm_final
-            .forward(&(&queries + self.final_t2i.forward(&q, &k, &keys)?)?)?;
+            .forward(&(&queries + self.final_t2i.forward_qkv(&q, &k, &keys, Scores::Plain)?)?)?;
         let (hyper, iou) = self.heads(&queries)?;
         Ok((self.upscale_with_ops(&keys, &hyper)?, iou))
     }
@@ -406,29 +395,29 @@ impl MaskDecoder {
             // `token_to_image[l - 1]`: the first layer has none.
             let attn = match l.checked_sub(1).and_then(|i| fused.token_to_image.get(i)) {
                 Some(t2i) => {
-                    let q = apply_linear(&layer.cross_t2i.q, &q)?;
+                    let q = apply_linear(projection(&layer.cross_t2i, 0)?, &q)?;
                     let out = image_side::token_to_image(t2i, &image, &pe, &q)?;
-                    apply_linear(&layer.cross_t2i.out, &out)?
+                    apply_linear(layer.cross_t2i.out(), &out)?
                 }
                 None => {
                     // The first layer: one image for every prompt.
                     let k = keys.broadcast_add(key_pe)?;
-                    layer.cross_t2i.forward(&q, &k, keys)?
+                    layer.cross_t2i.forward_qkv(&q, &k, keys, Scores::Plain)?
                 }
             };
             queries = layer.after_token_to_image(&queries, &attn)?;
             let q = (&queries + tokens)?;
-            let k = apply_linear(&layer.cross_i2t.k, &q)?;
-            let v = apply_linear(&layer.cross_i2t.v, &queries)?;
+            let k = apply_linear(projection(&layer.cross_i2t, 1)?, &q)?;
+            let v = apply_linear(projection(&layer.cross_i2t, 2)?, &queries)?;
             image_side::image_to_token(image_to_token, &mut image, &pe, &k, &v)?;
         }
         let final_t2i = fused
             .token_to_image
             .last()
             .ok_or_else(|| candle_core::Error::Msg("no final attention".to_owned()))?;
-        let q = apply_linear(&self.final_t2i.q, &(&queries + tokens)?)?;
+        let q = apply_linear(projection(&self.final_t2i, 0)?, &(&queries + tokens)?)?;
         let out = image_side::token_to_image(final_t2i, &image, &pe, &q)?;
-        let attn = apply_linear(&self.final_t2i.out, &out)?;
+        let attn = apply_linear(self.final_t2i.out(), &out)?;
         let queries = self.norm_final.forward(&(&queries + attn)?)?;
         let (hyper, iou) = self.heads(&queries)?;
         let masks = fused

@@ -9,8 +9,9 @@
 use candle_core::{Module, Result, Tensor};
 use candle_nn::{Conv2d, Conv2dConfig, LayerNorm, Linear, VarBuilder};
 
-use super::layers::{LayerNorm2d, apply_linear, conv2d_bn, gelu, layer_norm, linear, softmax_last};
+use super::layers::{LayerNorm2d, apply_linear, conv2d_bn, gelu, layer_norm, linear};
 use super::vit::{window_partition, window_unpartition};
+use crate::attention::{Attention, Inputs, Scores};
 
 /// The shape of a TinyViT encoder (four stages; the first is convolutional).
 #[derive(Clone, Debug, PartialEq, Eq)]
@@ -114,14 +115,12 @@ impl PatchMerging {
     }
 }
 
+/// TinyViT's attention module: a norm, then the shared attention (per head `[q k v]` channels)
+/// with a learned per-head bias of the offsets within a window.
 #[derive(Debug)]
-struct Attention {
+struct WindowAttention {
     norm: LayerNorm,
-    qkv: Linear,
-    proj: Linear,
-    num_heads: usize,
-    key_dim: usize,
-    scale: f64,
+    attention: Attention<Linear>,
     /// `(heads, N, N)` attention biases, gathered from the learned table.
     bias: Tensor,
 }
@@ -144,9 +143,8 @@ fn attention_bias_index(res: usize) -> (Vec<u32>, usize) {
     (idx, seen.len())
 }
 
-impl Attention {
+impl WindowAttention {
     fn new(vb: VarBuilder, dim: usize, num_heads: usize, window: usize) -> Result<Self> {
-        let key_dim = dim / num_heads;
         let n = window * window;
         let (idx, offsets) = attention_bias_index(window);
         let table = vb.get((num_heads, offsets), "attention_biases")?;
@@ -154,40 +152,25 @@ impl Attention {
         let bias = table.index_select(&idx, 1)?.reshape((num_heads, n, n))?;
         Ok(Self {
             norm: layer_norm(vb.pp("norm"), dim, 1e-5)?,
-            qkv: linear(vb.pp("qkv"), dim, 3 * dim)?,
-            proj: linear(vb.pp("proj"), dim, dim)?,
-            num_heads,
-            key_dim,
-            scale: 1.0 / (key_dim as f64).sqrt(),
+            attention: Attention::new(
+                Inputs::FusedPerHead(linear(vb.pp("qkv"), dim, 3 * dim)?),
+                linear(vb.pp("proj"), dim, dim)?,
+                num_heads,
+            ),
             bias,
         })
     }
 
     /// `(B, N, C)` tokens of windows of `N` pixels.
     fn forward(&self, xs: &Tensor) -> Result<Tensor> {
-        let (b, n, c) = xs.dims3()?;
-        let x = self.norm.forward(xs)?;
-        // Per head: key_dim query, key_dim key and key_dim value channels, in that order.
-        let qkv = apply_linear(&self.qkv, &x)?
-            .reshape((b, n, self.num_heads, 3 * self.key_dim))?
-            .permute((0, 2, 1, 3))?;
-        let q = qkv.narrow(3, 0, self.key_dim)?.contiguous()?;
-        let k = qkv.narrow(3, self.key_dim, self.key_dim)?.contiguous()?;
-        let v = qkv
-            .narrow(3, 2 * self.key_dim, self.key_dim)?
-            .contiguous()?;
-        let scores = (q.matmul(&k.t()?)? * self.scale)?.broadcast_add(&self.bias)?;
-        let out = softmax_last(&scores)?
-            .matmul(&v)?
-            .transpose(1, 2)?
-            .reshape((b, n, c))?;
-        apply_linear(&self.proj, &out)
+        self.attention
+            .forward(&self.norm.forward(xs)?, None, Scores::Bias(&self.bias))
     }
 }
 
 #[derive(Debug)]
 struct TinyVitBlock {
-    attn: Attention,
+    attn: WindowAttention,
     mlp_norm: LayerNorm,
     fc1: Linear,
     fc2: Linear,
@@ -200,7 +183,7 @@ impl TinyVitBlock {
     fn new(vb: VarBuilder, dim: usize, heads: usize, window: usize, res: usize) -> Result<Self> {
         let mlp = vb.pp("mlp");
         Ok(Self {
-            attn: Attention::new(vb.pp("attn"), dim, heads, window)?,
+            attn: WindowAttention::new(vb.pp("attn"), dim, heads, window)?,
             mlp_norm: layer_norm(mlp.pp("norm"), dim, 1e-5)?,
             fc1: linear(mlp.pp("fc1"), dim, dim * MLP_RATIO)?,
             fc2: linear(mlp.pp("fc2"), dim * MLP_RATIO, dim)?,

@@ -8,7 +8,8 @@
 use candle_core::{Module, Result, Tensor};
 use candle_nn::{Conv2d, Conv2dConfig, LayerNorm, Linear, VarBuilder};
 
-use super::layers::{LayerNorm2d, apply_linear, gelu, layer_norm, linear, softmax_last};
+use super::layers::{LayerNorm2d, apply_linear, gelu, layer_norm, linear};
+use crate::attention::{Attention, Inputs, Scores};
 
 /// The shape of a SAM ViT image encoder.
 #[derive(Clone, Debug, PartialEq, Eq)]
@@ -59,18 +60,6 @@ const PATCH: usize = 16;
 const GRID: usize = 1024 / PATCH;
 const WINDOW: usize = 14;
 const OUT_CHANS: usize = 256;
-/// Attention scores computed at once at most (floats), to bound the memory of global attention.
-const MAX_SCORES: usize = 1 << 25;
-
-#[derive(Debug)]
-struct Attention {
-    qkv: Linear,
-    proj: Linear,
-    num_heads: usize,
-    scale: f64,
-    rel_pos_h: Tensor,
-    rel_pos_w: Tensor,
-}
 
 /// The relative position table for query and key lengths `size`: `(size, size, head_dim)` rows
 /// `q - k + size - 1` of `rel_pos` (the reference's `get_rel_pos` for equal sizes, where no
@@ -83,82 +72,13 @@ fn rel_pos_table(size: usize, rel_pos: &Tensor) -> Result<Tensor> {
     rel_pos.index_select(&idx, 0)?.reshape((size, size, ()))
 }
 
-impl Attention {
-    fn new(vb: VarBuilder, dim: usize, num_heads: usize, size: usize) -> Result<Self> {
-        let head_dim = dim / num_heads;
-        Ok(Self {
-            qkv: linear(vb.pp("qkv"), dim, dim * 3)?,
-            proj: linear(vb.pp("proj"), dim, dim)?,
-            num_heads,
-            scale: 1.0 / (head_dim as f64).sqrt(),
-            rel_pos_h: rel_pos_table(size, &vb.get((2 * size - 1, head_dim), "rel_pos_h")?)?,
-            rel_pos_w: rel_pos_table(size, &vb.get((2 * size - 1, head_dim), "rel_pos_w")?)?,
-        })
-    }
-
-    /// `xs`: `(B, H, W, C)` with `H == W` the size the tables were built for.
-    fn forward(&self, xs: &Tensor) -> Result<Tensor> {
-        let (b, h, w, c) = xs.dims4()?;
-        let hd = c / self.num_heads;
-        let bh = b * self.num_heads;
-        let n = h * w;
-        let qkv = apply_linear(&self.qkv, xs)?
-            .reshape((b, n, 3, self.num_heads, hd))?
-            .permute((2, 0, 3, 1, 4))?
-            .reshape((3, bh, n, hd))?;
-        let q = qkv.get(0)?.contiguous()?;
-        let k = qkv.get(1)?.contiguous()?;
-        let v = qkv.get(2)?.contiguous()?;
-
-        // rel_h[b, y, x, ky] = q[b, y, x, :] . Rh[y, ky, :], rel_w likewise along x.
-        let r_q = q.reshape((bh, h, w, hd))?;
-        let rel_h = r_q
-            .permute((1, 0, 2, 3))?
-            .reshape((h, bh * w, hd))?
-            .contiguous()?
-            .matmul(&self.rel_pos_h.transpose(1, 2)?.contiguous()?)?
-            .reshape((h, bh, w, h))?
-            .permute((1, 0, 2, 3))?;
-        let rel_w = r_q
-            .permute((2, 0, 1, 3))?
-            .reshape((w, bh * h, hd))?
-            .contiguous()?
-            .matmul(&self.rel_pos_w.transpose(1, 2)?.contiguous()?)?
-            .reshape((w, bh, h, w))?
-            .permute((1, 2, 0, 3))?;
-        let rel_h = rel_h.contiguous()?;
-        let rel_w = rel_w.contiguous()?;
-
-        // Chunks over (batch x head) bound the score memory of global attention.
-        let chunk = (MAX_SCORES / (n * n)).max(1);
-        let mut outs = Vec::with_capacity(bh.div_ceil(chunk));
-        let mut start = 0;
-        while start < bh {
-            let len = chunk.min(bh - start);
-            // attn[(y, x), (ky, kx)] += rel_h[y, x, ky] + rel_w[y, x, kx].
-            let rel = rel_h
-                .narrow(0, start, len)?
-                .unsqueeze(4)?
-                .broadcast_add(&rel_w.narrow(0, start, len)?.unsqueeze(3)?)?
-                .reshape((len, n, n))?;
-            let scores = (q.narrow(0, start, len)? * self.scale)?
-                .matmul(&k.narrow(0, start, len)?.t()?)?
-                .add(&rel)?;
-            outs.push(softmax_last(&scores)?.matmul(&v.narrow(0, start, len)?)?);
-            start += len;
-        }
-        let out = Tensor::cat(&outs, 0)?
-            .reshape((b, self.num_heads, h, w, hd))?
-            .permute((0, 2, 3, 1, 4))?
-            .reshape((b, h, w, c))?;
-        apply_linear(&self.proj, &out)
-    }
-}
-
 #[derive(Debug)]
 struct Block {
     norm1: LayerNorm,
-    attn: Attention,
+    attn: Attention<Linear>,
+    /// The relative position tables `(size, size, head_dim)` of rows and of columns, for the
+    /// `size × size` token grid (a window, or the whole grid) the block attends over.
+    rel_pos: (Tensor, Tensor),
     norm2: LayerNorm,
     lin1: Linear,
     lin2: Linear,
@@ -168,14 +88,35 @@ struct Block {
 impl Block {
     fn new(vb: VarBuilder, dim: usize, num_heads: usize, window: usize) -> Result<Self> {
         let size = if window == 0 { GRID } else { window };
+        let head_dim = dim / num_heads;
+        let a = vb.pp("attn");
+        let table = |name: &str| rel_pos_table(size, &a.get((2 * size - 1, head_dim), name)?);
         Ok(Self {
             norm1: layer_norm(vb.pp("norm1"), dim, 1e-6)?,
-            attn: Attention::new(vb.pp("attn"), dim, num_heads, size)?,
+            attn: Attention::new(
+                Inputs::Fused(linear(a.pp("qkv"), dim, dim * 3)?),
+                linear(a.pp("proj"), dim, dim)?,
+                num_heads,
+            ),
+            rel_pos: (table("rel_pos_h")?, table("rel_pos_w")?),
             norm2: layer_norm(vb.pp("norm2"), dim, 1e-6)?,
             lin1: linear(vb.pp("mlp").pp("lin1"), dim, dim * 4)?,
             lin2: linear(vb.pp("mlp").pp("lin2"), dim * 4, dim)?,
             window,
         })
+    }
+
+    /// Attention over `(B, H, W, C)` tokens, `H == W` the size the tables were built for.
+    fn attend(&self, xs: &Tensor) -> Result<Tensor> {
+        let (b, h, w, c) = xs.dims4()?;
+        let scores = Scores::Relative {
+            grid: (h, w),
+            table_h: &self.rel_pos.0,
+            table_w: &self.rel_pos.1,
+        };
+        self.attn
+            .forward(&xs.reshape((b, h * w, c))?, None, scores)?
+            .reshape((b, h, w, c))
     }
 
     fn forward(&self, xs: &Tensor) -> Result<Tensor> {
@@ -184,12 +125,12 @@ impl Block {
         let x = if self.window > 0 {
             let (b, h, w, c) = x.dims4()?;
             let (windows, hp, wp) = window_partition(&x, self.window)?;
-            let out = self.attn.forward(&windows)?;
+            let out = self.attend(&windows)?;
             window_unpartition(&out, self.window, (b, hp, wp, c))?
                 .narrow(1, 0, h)?
                 .narrow(2, 0, w)?
         } else {
-            self.attn.forward(&x)?
+            self.attend(&x)?
         };
         let x = (shortcut + x)?;
         let mlp = apply_linear(
