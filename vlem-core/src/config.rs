@@ -639,6 +639,11 @@ pub struct Ros2Config {
     /// Seconds without a new image after which the input counts as stalled (logged); default 2.
     #[serde(default = "default_ros2_stall_seconds")]
     pub stall_seconds: f64,
+    /// Largest forward jump (s) of a frame's stamp past the previous frame's taken at once; a frame
+    /// beyond it is refused and counted, and three in a row make it the stream's new time;
+    /// default 10 ([`crate::stream::StreamSpec::max_stamp_jump`]).
+    #[serde(default = "default_ros2_max_stamp_jump")]
+    pub max_stamp_jump: f64,
 }
 
 /// Type of `[ros2] pose_topic`.
@@ -695,6 +700,10 @@ fn default_ros2_stall_seconds() -> f64 {
     2.0
 }
 
+fn default_ros2_max_stamp_jump() -> f64 {
+    crate::stream::DEFAULT_MAX_STAMP_JUMP
+}
+
 impl Default for Ros2Config {
     fn default() -> Self {
         Self {
@@ -721,6 +730,7 @@ impl Default for Ros2Config {
             best_topic: default_ros2_best_topic(),
             grasp_topic: default_ros2_grasp_topic(),
             stall_seconds: default_ros2_stall_seconds(),
+            max_stamp_jump: default_ros2_max_stamp_jump(),
         }
     }
 }

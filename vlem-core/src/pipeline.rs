@@ -519,8 +519,13 @@ impl Pipeline {
                     watchers,
                 )
             });
-            let embedding =
-                stages::run_workers(scope, groups, receiver, self.config.stage_queue_capacity);
+            let embedding = stages::run_workers(
+                scope,
+                groups,
+                receiver,
+                self.config.stage_queue_capacity,
+                stop,
+            );
             let tracking = tracking.join().map_err(|_| CoreError::Worker {
                 reason: "the tracking thread panicked".into(),
             });

@@ -34,7 +34,19 @@ pub struct StreamSpec {
     /// Frames that may wait between the senders and the tracking thread (1 to
     /// [`crate::config::MAX_QUEUE_CAPACITY`]).
     pub capacity: usize,
+    /// The largest forward jump of a frame's timestamp past the previous frame's that the stream
+    /// takes at once, in seconds ([`DEFAULT_MAX_STAMP_JUMP`]). A frame beyond it is refused without
+    /// becoming the stream's time, so one frame stamped in the far future cannot lock out every
+    /// later one; [`JUMP_CONFIRMATIONS`] frames in a row after such a jump, each within the bound
+    /// of the one before (a camera that was paused), make it the stream's new time.
+    pub max_stamp_jump: f64,
 }
+
+/// [`StreamSpec::max_stamp_jump`] by default: 10 s.
+pub const DEFAULT_MAX_STAMP_JUMP: f64 = 10.0;
+
+/// Frames in a row that confirm a timestamp jump (see [`StreamSpec::max_stamp_jump`]).
+pub const JUMP_CONFIRMATIONS: usize = 3;
 
 /// Creates a stream: the senders a live source pushes frames into, and the [`FrameSource`] a
 /// pipeline runs on.
@@ -44,6 +56,16 @@ pub struct StreamSpec {
 /// capacity outside 1 to [`crate::config::MAX_QUEUE_CAPACITY`] (its slots are allocated up front).
 pub fn frame_stream(spec: StreamSpec) -> Result<(FrameSender, FrameStream)> {
     spec.intrinsics.validate()?;
+    if !(spec.max_stamp_jump.is_finite() && spec.max_stamp_jump > 0.0) {
+        return Err(CoreError::InvalidParams {
+            section: "stream".into(),
+            name: spec.description.clone(),
+            message: format!(
+                "max_stamp_jump must be a positive number of seconds, got {}",
+                spec.max_stamp_jump
+            ),
+        });
+    }
     let max = crate::config::MAX_QUEUE_CAPACITY;
     if !(1..=max).contains(&spec.capacity) {
         return Err(CoreError::InvalidParams {
@@ -67,11 +89,13 @@ pub fn frame_stream(spec: StreamSpec) -> Result<(FrameSender, FrameStream)> {
     ))
 }
 
-/// Where the senders are in the stream: the next index and the last timestamp.
+/// Where the senders are in the stream: the next index and the last timestamp, and the refused
+/// frames after a timestamp jump (the last one's stamp and how many in a row).
 #[derive(Default)]
 struct Sequence {
     next_index: usize,
     last_timestamp: Option<f64>,
+    jumped: Option<(f64, usize)>,
 }
 
 /// The pushing end of a stream; clone it for several producers. The stream ends when every sender
@@ -99,13 +123,14 @@ impl FrameSender {
         // Held while waiting for room, so concurrent senders keep their order.
         let mut sequence = self.sequence.lock().unwrap_or_else(PoisonError::into_inner);
         let timestamp = frame.timestamp;
-        let frame = self.admit(&sequence, frame)?;
+        let frame = self.admit(&mut sequence, frame)?;
         let index = frame.index;
         self.sender
             .send(frame)
             .map_err(|_| CoreError::StreamClosed)?;
         sequence.next_index += 1;
         sequence.last_timestamp = Some(timestamp);
+        sequence.jumped = None;
         Ok(index)
     }
 
@@ -117,12 +142,13 @@ impl FrameSender {
     pub fn try_send(&self, frame: Frame) -> Result<Option<usize>> {
         let mut sequence = self.sequence.lock().unwrap_or_else(PoisonError::into_inner);
         let timestamp = frame.timestamp;
-        let frame = self.admit(&sequence, frame)?;
+        let frame = self.admit(&mut sequence, frame)?;
         let index = frame.index;
         match self.sender.try_send(frame) {
             Ok(()) => {
                 sequence.next_index += 1;
                 sequence.last_timestamp = Some(timestamp);
+                sequence.jumped = None;
                 Ok(Some(index))
             }
             Err(TrySendError::Full(_)) => Ok(None),
@@ -135,18 +161,35 @@ impl FrameSender {
     pub fn finish(self) {}
 
     /// Checks a frame against the stream and gives it its index.
-    fn admit(&self, sequence: &Sequence, mut frame: Frame) -> Result<Frame> {
+    fn admit(&self, sequence: &mut Sequence, mut frame: Frame) -> Result<Frame> {
         let refuse = |reason: String| Err(CoreError::FrameRefused { reason });
         if !frame.timestamp.is_finite() {
             return refuse(format!("its timestamp {} is not finite", frame.timestamp));
         }
-        if let Some(previous) = sequence.last_timestamp
-            && frame.timestamp <= previous
-        {
-            return refuse(format!(
-                "its timestamp {} s is not after the previous frame's ({previous} s)",
-                frame.timestamp
-            ));
+        if let Some(previous) = sequence.last_timestamp {
+            let stamp = frame.timestamp;
+            if stamp <= previous {
+                return refuse(format!(
+                    "its timestamp {stamp} s is not after the previous frame's ({previous} s)"
+                ));
+            }
+            let max = self.spec.max_stamp_jump;
+            if stamp - previous > max {
+                let run = match sequence.jumped {
+                    Some((last, n)) if stamp > last && stamp - last <= max => n + 1,
+                    _ => 1,
+                };
+                if run < JUMP_CONFIRMATIONS {
+                    sequence.jumped = Some((stamp, run));
+                    return refuse(format!(
+                        "its timestamp {stamp} s jumps {:.3} s past the previous frame's \
+                         ({previous} s), more than the stream's max_stamp_jump of {max} s; it \
+                         becomes the stream's time if {} more frames follow it",
+                        stamp - previous,
+                        JUMP_CONFIRMATIONS - run
+                    ));
+                }
+            }
         }
         let (expected, actual) = (&self.spec.intrinsics, &frame.intrinsics);
         if actual != expected {

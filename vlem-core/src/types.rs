@@ -169,6 +169,27 @@ impl DepthImage {
     }
 }
 
+/// The farthest a pose may place the camera from the map's origin, in metres: 100 km. Map
+/// positions are `f32`, whose spacing at 100 km is 8 mm; a pose beyond it is a broken transform
+/// (a tf of 1e300 m is finite in `f64`), whose points would be infinite or meaningless in the map.
+pub const MAX_POSE_DISTANCE_M: f64 = 1e5;
+
+/// Why the camera position `t` cannot be a pose's (not finite, or farther than
+/// [`MAX_POSE_DISTANCE_M`] from the origin), or `None` when it can.
+pub fn implausible_position(t: [f64; 3]) -> Option<String> {
+    // `hypot`: the squares of 1e300 overflow, the distance does not.
+    let distance = t.iter().fold(0.0f64, |d, x| d.hypot(*x));
+    if !distance.is_finite() {
+        return Some("the pose's translation is not finite".to_owned());
+    }
+    (distance > MAX_POSE_DISTANCE_M).then(|| {
+        format!(
+            "the pose places the camera {distance:.3e} m from the map's origin, beyond the \
+             {MAX_POSE_DISTANCE_M:.0e} m vlem accepts (map positions are f32): a broken transform?"
+        )
+    })
+}
+
 /// `Some(d)` when `d` is a usable depth measurement (finite and > 0).
 #[inline]
 pub fn valid_depth(d: f32) -> Option<f32> {
@@ -192,12 +213,18 @@ pub struct Intrinsics {
     pub cy: f64,
 }
 
+/// The focal lengths a camera can have, as multiples of its image's larger side: from a field of
+/// view of 179° (0.005) to one of 0.06° (1000). A camera info with fx = 1e-30 is a broken message,
+/// and a map built with it has points 1e32 m away.
+pub const FOCAL_RANGE: (f64, f64) = (0.005, 1000.0);
+
 impl Intrinsics {
     /// Validated intrinsics.
     ///
     /// # Errors
-    /// [`CoreError::InvalidIntrinsics`] for an empty image, non-positive or non-finite focal
-    /// lengths, or a principal point outside the image.
+    /// [`CoreError::InvalidIntrinsics`] for an empty image, focal lengths that are not finite or
+    /// not within [`FOCAL_RANGE`] times the image's larger side, or a principal point outside the
+    /// image.
     pub fn new(width: u32, height: u32, fx: f64, fy: f64, cx: f64, cy: f64) -> Result<Self> {
         let k = Self {
             width,
@@ -228,6 +255,16 @@ impl Intrinsics {
             return fail(format!(
                 "focal lengths must be positive, got fx = {}, fy = {}",
                 self.fx, self.fy
+            ));
+        }
+        let side = f64::from(self.width.max(self.height));
+        let (low, high) = (FOCAL_RANGE.0 * side, FOCAL_RANGE.1 * side);
+        if !(low..=high).contains(&self.fx) || !(low..=high).contains(&self.fy) {
+            return fail(format!(
+                "focal lengths fx = {}, fy = {} are not those of a camera with a {}x{} image: \
+                 they must lie between {low} and {high} pixels ({} to {} times its larger side; \
+                 a field of view between 0.06° and 179°)",
+                self.fx, self.fy, self.width, self.height, FOCAL_RANGE.0, FOCAL_RANGE.1
             ));
         }
         let inside = |c: f64, size: u32| c.is_finite() && c >= 0.0 && c <= f64::from(size);
@@ -596,6 +633,12 @@ mod tests {
         let err = Intrinsics::new(0, 480, 525.0, 525.0, 0.0, 0.0).unwrap_err();
         assert!(err.to_string().contains("empty"), "{err}");
         assert!(Intrinsics::new(640, 480, 525.0, 525.0, 319.5, 239.5).is_ok());
+        // A camera info with fx = fy = 1e-30 (positive, finite, and no camera's).
+        for f in [1e-30, 3.0, 640_001.0] {
+            let err = Intrinsics::new(640, 480, f, f, 319.5, 239.5).unwrap_err();
+            assert!(err.to_string().contains("not those of a camera"), "{err}");
+        }
+        assert!(Intrinsics::new(640, 480, 3.2, 3.2, 319.5, 239.5).is_ok());
     }
 
     #[test]

@@ -17,11 +17,27 @@ fn read_bytes(path: &Path) -> Result<Vec<u8>> {
     std::fs::read(path).map_err(|e| DatasetError::io(path, e))
 }
 
-/// Decodes `bytes`, trusting their content over the file's extension (datasets do mislabel files).
+/// The largest image decoded, in bytes of decoded pixels: 256 MiB (an 8K colour frame is 100 MB,
+/// an 8K 16-bit depth frame 66 MB). The decoder checks the size the header declares against it
+/// before allocating, so a compressed bomb (13000 × 13000 RGB in 490 KB of PNG) is refused
+/// without the memory it would take.
+pub(crate) const MAX_DECODED_BYTES: u64 = 256 << 20;
+
+/// The widest or tallest image decoded, in pixels.
+pub(crate) const MAX_IMAGE_SIDE: u32 = 16_384;
+
+/// Decodes `bytes`, trusting their content over the file's extension (datasets do mislabel files),
+/// within [`MAX_DECODED_BYTES`] and [`MAX_IMAGE_SIDE`].
 fn decode(bytes: &[u8], origin: &Path) -> Result<DynamicImage> {
-    ImageReader::new(Cursor::new(bytes))
+    let mut limits = image::Limits::default();
+    limits.max_alloc = Some(MAX_DECODED_BYTES);
+    limits.max_image_width = Some(MAX_IMAGE_SIDE);
+    limits.max_image_height = Some(MAX_IMAGE_SIDE);
+    let mut reader = ImageReader::new(Cursor::new(bytes))
         .with_guessed_format()
-        .map_err(|e| DatasetError::io(origin, e))?
+        .map_err(|e| DatasetError::io(origin, e))?;
+    reader.limits(limits);
+    reader
         .decode()
         .map_err(|source| DatasetError::UnreadableImage {
             path: origin.to_path_buf(),

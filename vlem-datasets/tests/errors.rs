@@ -408,3 +408,33 @@ fn colour_and_depth_of_different_frames_are_not_paired() {
         "{err}"
     );
 }
+
+/// A PNG whose header declares `width` x `height` 8-bit RGB pixels, with a valid checksum, and
+/// the data of a 1 x 1 image: what a decompression bomb looks like to a decoder before it
+/// allocates.
+fn png_declaring(width: u32, height: u32) -> Vec<u8> {
+    let mut png = Vec::new();
+    image::RgbImage::new(1, 1)
+        .write_to(&mut std::io::Cursor::new(&mut png), image::ImageFormat::Png)
+        .unwrap();
+    // Signature (8), IHDR length (4), "IHDR" (4), width, height, ...; the CRC covers the type
+    // and the 13 data bytes.
+    png[16..20].copy_from_slice(&width.to_be_bytes());
+    png[20..24].copy_from_slice(&height.to_be_bytes());
+    let crc = crc32fast::hash(&png[12..29]);
+    png[29..33].copy_from_slice(&crc.to_be_bytes());
+    png
+}
+
+#[test]
+fn images_declaring_more_pixels_than_the_limit_are_refused_before_decoding() {
+    let origin = std::path::Path::new("bomb.png");
+    for (w, h) in [(13_000, 13_000), (20_000, 2)] {
+        let error = vlem_datasets::colour_from_bytes(&png_declaring(w, h), origin)
+            .err()
+            .map(|e| e.to_string())
+            .unwrap_or_default();
+        assert!(error.contains("bomb.png"), "{w}x{h}: {error}");
+        assert!(error.to_lowercase().contains("limit"), "{w}x{h}: {error}");
+    }
+}

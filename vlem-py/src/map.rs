@@ -108,6 +108,9 @@ impl PyMap {
     }
 }
 
+/// The largest score table [`PyMap::scores`] builds: 4 GiB (1M points × 1024 texts).
+const MAX_SCORE_TABLE_BYTES: usize = 4 << 30;
+
 fn texts_from(texts: &Bound<'_, PyAny>) -> PyResult<Vec<String>> {
     if let Ok(text) = texts.extract::<String>() {
         return Ok(vec![text]);
@@ -254,13 +257,28 @@ impl PyMap {
 
     /// Every point's similarity to every text: ``float32[N, len(texts)]``, the paper's
     /// normalised cosine similarity ``(text . point + 1) / 2`` in ``[0, 1]``, as the heatmaps and
-    /// segmenters use it.
+    /// segmenters use it. A table of more than 4 GiB (``N × len(texts) × 4`` bytes; scoring holds
+    /// it twice) raises ``MemoryError`` before anything is scored: ask for fewer texts per call.
     fn scores<'py>(
         &self,
         py: Python<'py>,
         texts: &Bound<'py, PyAny>,
     ) -> PyResult<Bound<'py, PyAny>> {
         let texts = texts_from(texts)?;
+        let points = match &self.source {
+            Source::Live(live) => live.read(|view| view.map.len()).unwrap_or(0),
+            Source::Saved { snapshot, .. } => snapshot.len(),
+        };
+        let bytes = points.saturating_mul(texts.len()).saturating_mul(4);
+        if bytes > MAX_SCORE_TABLE_BYTES {
+            return Err(pyo3::exceptions::PyMemoryError::new_err(format!(
+                "the scores of {} texts over {points} points are a {:.1} GiB table (held twice \
+                 while scoring); the limit is {} GiB: ask for fewer texts per call",
+                texts.len(),
+                bytes as f64 / (1u64 << 30) as f64,
+                MAX_SCORE_TABLE_BYTES >> 30
+            )));
+        }
         let encoder = self.encoder(py)?;
         let segmenter = Selection::threshold()
             .build(&self.build_context())

@@ -26,16 +26,32 @@ pub struct PyIntrinsics(pub Intrinsics);
 
 #[pymethods]
 impl PyIntrinsics {
+    /// Sizes are read as any Python int and checked here, so that a negative or huge one names
+    /// its argument (a plain `u32` argument would raise a bare ``OverflowError``).
     #[new]
-    fn new(width: u32, height: u32, fx: f64, fy: f64, cx: f64, cy: f64) -> PyResult<Self> {
-        Intrinsics::new(width, height, fx, fy, cx, cy)
-            .map(Self)
-            .map_err(|e| PyValueError::new_err(e.to_string()))
+    fn new(width: i128, height: i128, fx: f64, fy: f64, cx: f64, cy: f64) -> PyResult<Self> {
+        let pixels = |name: &str, value: i128| -> PyResult<u32> {
+            u32::try_from(value).ok().filter(|v| *v > 0).ok_or_else(|| {
+                PyValueError::new_err(format!(
+                    "{name} must be a positive number of pixels below 2**32, got {value}"
+                ))
+            })
+        };
+        Intrinsics::new(
+            pixels("width", width)?,
+            pixels("height", height)?,
+            fx,
+            fy,
+            cx,
+            cy,
+        )
+        .map(Self)
+        .map_err(|e| PyValueError::new_err(e.to_string()))
     }
 
     /// From a 3x3 camera matrix ``K`` (as in ROS ``CameraInfo.k`` or OpenCV) and the image size.
     #[staticmethod]
-    fn from_matrix(k: &Bound<'_, PyAny>, width: u32, height: u32) -> PyResult<Self> {
+    fn from_matrix(k: &Bound<'_, PyAny>, width: i128, height: i128) -> PyResult<Self> {
         let np = k.py().import("numpy")?;
         let k = np.call_method1("asarray", (k, "float64"))?;
         let (values, _) = read::<f64>(&k, "k", "a 3x3 camera matrix", &[Some(3), Some(3)])?;
@@ -293,6 +309,9 @@ fn pose_from(value: &Bound<'_, PyAny>) -> PyResult<vlem_core::Pose> {
             "pose must be a rigid 4x4 camera-to-world matrix (orthonormal rotation, last row 0 0 0 1)",
         ));
     }
+    if let Some(why) = vlem_core::types::implausible_position([m[3], m[7], m[11]]) {
+        return Err(PyValueError::new_err(format!("pose: {why}")));
+    }
     let rotation =
         UnitQuaternion::from_rotation_matrix(&Rotation3::from_matrix_unchecked(rotation));
     Ok(Isometry3::from_parts(
@@ -411,6 +430,7 @@ impl PyPipeline {
             intrinsics: intrinsics.0,
             has_poses,
             capacity,
+            max_stamp_jump: vlem_core::stream::DEFAULT_MAX_STAMP_JUMP,
         };
         let (sender, mut stream) = match frame_stream(spec) {
             Ok(pair) => pair,

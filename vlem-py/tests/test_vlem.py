@@ -61,6 +61,9 @@ def test_a_run_gives_numpy_arrays_of_the_documented_dtypes():
     scores = m.scores(["white wall", "brown"])
     assert scores.shape == (n, 2) and scores.dtype == np.float32
     assert (scores >= 0).all() and (scores <= 1).all() and (scores.max(axis=0) > 0.99).all()
+    # A table over 4 GiB is refused before anything is scored (not an abort of the interpreter).
+    with pytest.raises(MemoryError, match="fewer texts per call"):
+        m.scores(["red"] * ((4 << 30) // (4 * n) + 1))
     t = pipeline.trajectory
     assert t.shape == (4, 8) and t.dtype == np.float64
     np.testing.assert_allclose(np.linalg.norm(t[:, 4:], axis=1), 1.0)
@@ -104,6 +107,12 @@ def read_frames(count):
         colour = np.asarray(image.open(FRAMES / "color" / f"{i:05d}.jpg").convert("RGB"))
         depth = np.asarray(image.open(FRAMES / "depth" / f"{i:05d}.png")).astype(np.uint16)
         yield colour, depth, poses[i]
+
+
+def test_camera_sizes_out_of_range_name_their_argument():
+    for width, height, name in [(-1, 480, "width"), (640, 0, "height"), (2**40, 480, "width")]:
+        with pytest.raises(ValueError, match=f"{name} must be a positive number of pixels"):
+            vlem.Intrinsics(width, height, 525.0, 525.0, 319.5, 239.5)
 
 
 def test_frames_fed_from_numpy_map_like_the_folder_and_are_queried_while_feeding():
@@ -155,6 +164,10 @@ def test_feeding_refuses_bad_arrays_naming_the_argument():
             feed.push(colour.tolist(), depth, timestamp=0.0, pose=np.eye(4))
         with pytest.raises(ValueError, match="rigid"):
             feed.push(colour, depth, timestamp=0.0, pose=np.ones((4, 4)))
+        far = np.eye(4)
+        far[0, 3] = 1e30
+        with pytest.raises(ValueError, match="from the map's origin"):
+            feed.push(colour, depth, timestamp=0.0, pose=far)
         assert feed.push(colour, depth, timestamp=1.0, pose=np.eye(4)) == 0
         with pytest.raises(vlem.DatasetError, match="not after the previous"):
             feed.push(colour, depth, timestamp=0.5, pose=np.eye(4))

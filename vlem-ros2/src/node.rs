@@ -119,8 +119,18 @@ pub fn run_node(
         busy |= io.take_transforms(&mut assembler, &status);
         while let Some(text) = io.take_query(&status) {
             busy = true;
-            if queries.send(text).is_err() {
-                status.warn(Counter::QueryErrors, "the query thread has stopped");
+            match queries.try_send(text) {
+                Ok(()) => {}
+                Err(mpsc::TrySendError::Full(text)) => status.warn(
+                    Counter::QueriesDropped,
+                    &format!(
+                        "the query {} was dropped: {QUERY_QUEUE} queries are waiting",
+                        for_log(&text)
+                    ),
+                ),
+                Err(mpsc::TrySendError::Disconnected(_)) => {
+                    status.warn(Counter::QueryErrors, "the query thread has stopped");
+                }
             }
         }
         if got_images {
@@ -237,6 +247,7 @@ fn start_pipeline(
         intrinsics: camera,
         has_poses: settings.pose_topic.is_some() || settings.tf.is_some(),
         capacity: settings.queue,
+        max_stamp_jump: settings.max_stamp_jump,
     };
     let (sender, mut stream) = frame_stream(spec)?;
     let handle = std::thread::Builder::new()
@@ -682,6 +693,33 @@ fn publish_map(
     *last = Some((Instant::now(), frames));
 }
 
+/// Queries waiting for the query thread at most; more are dropped and counted, so a burst cannot
+/// delay later queries (or the end of the node) by more than this many answers.
+pub const QUERY_QUEUE: usize = 16;
+
+/// Characters of a query that log lines show.
+const LOGGED_QUERY_CHARS: usize = 80;
+
+/// `text` quoted for a log line: at most [`LOGGED_QUERY_CHARS`] characters, then how long it was.
+fn for_log(text: &str) -> String {
+    match text.char_indices().nth(LOGGED_QUERY_CHARS) {
+        Some((cut, _)) => format!("\"{}…\" ({} bytes)", &text[..cut], text.len()),
+        None => format!("\"{text}\""),
+    }
+}
+
+/// A query's text and whether it asks for a grasp: the prefix `grasp:` in any case (`Grasp:`,
+/// `GRASP:`), as the README documents, with the spaces around the text removed.
+fn parse_query(text: &str) -> (String, bool) {
+    let text = text.trim();
+    match text.get(..6) {
+        Some(prefix) if prefix.eq_ignore_ascii_case("grasp:") => {
+            (text[6..].trim().to_owned(), true)
+        }
+        _ => (text.to_owned(), false),
+    }
+}
+
 /// The query thread: answers each text on the live map and publishes the heatmap, the best set
 /// and, for `grasp: TEXT`, the grasp.
 fn spawn_query_worker(
@@ -690,21 +728,18 @@ fn spawn_query_worker(
     live: LiveMap,
     segmenter: Box<dyn Segmenter>,
     status: Arc<Status>,
-) -> Result<(mpsc::Sender<String>, JoinHandle<()>)> {
+) -> Result<(mpsc::SyncSender<String>, JoinHandle<()>)> {
     let heatmap: Publisher<PointCloud2> = advertise(node, &settings.heatmap_topic, POINT_CLOUD2)?;
     let best: Publisher<PointCloud2> = advertise(node, &settings.best_topic, POINT_CLOUD2)?;
     let grasp: Publisher<PoseStamped> = advertise(node, &settings.grasp_topic, POSE_STAMPED)?;
     let frame = settings.map_frame.clone();
     let max_points = settings.map_max_points.max(1);
-    let (sender, receiver) = mpsc::channel::<String>();
+    let (sender, receiver) = mpsc::sync_channel::<String>(QUERY_QUEUE);
     let handle = std::thread::Builder::new()
         .name("vlem-ros2-query".into())
         .spawn(move || {
             for text in receiver {
-                let (text, wants_grasp) = match text.trim().strip_prefix("grasp:") {
-                    Some(rest) => (rest.trim().to_owned(), true),
-                    None => (text.trim().to_owned(), false),
-                };
+                let (text, wants_grasp) = parse_query(&text);
                 if text.is_empty() {
                     eprintln!("vlem ros2: an empty query was ignored");
                     continue;
@@ -723,7 +758,7 @@ fn spawn_query_worker(
                     Err(e) => {
                         status.warn(
                             Counter::QueryErrors,
-                            &format!("query \"{text}\" failed: {e}"),
+                            &format!("query {} failed: {e}", for_log(&text)),
                         );
                         continue;
                     }
@@ -797,7 +832,8 @@ fn spawn_query_worker(
                 }
                 status.count(Counter::Queries);
                 eprintln!(
-                    "vlem ros2: answered \"{text}\" on {} points ({} frames), best set {} points{}",
+                    "vlem ros2: answered {} on {} points ({} frames), best set {} points{}",
+                    for_log(&text),
                     positions.len(),
                     answered.answer.frames_integrated,
                     points.len(),
@@ -807,4 +843,32 @@ fn spawn_query_worker(
         })
         .map_err(|e| Ros2Error::Config(format!("cannot start the query thread: {e}")))?;
     Ok((sender, handle))
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn the_grasp_prefix_is_read_in_any_case() {
+        for text in ["grasp: mug", "GRASP: mug", " Grasp:mug ", "gRaSp:   mug"] {
+            assert_eq!(parse_query(text), ("mug".to_owned(), true), "{text:?}");
+        }
+        assert_eq!(parse_query(" red mug "), ("red mug".to_owned(), false));
+        assert_eq!(parse_query("grasp"), ("grasp".to_owned(), false));
+        // A multi-byte character where the prefix would end is no prefix, and no panic.
+        assert_eq!(parse_query("grasé: x"), ("grasé: x".to_owned(), false));
+    }
+
+    #[test]
+    fn long_queries_are_cut_in_log_lines() {
+        assert_eq!(for_log("mug"), "\"mug\"");
+        let long = "é".repeat(1000);
+        let shown = for_log(&long);
+        assert!(shown.ends_with("…\" (2000 bytes)"), "{shown}");
+        assert_eq!(
+            shown.chars().filter(|c| *c == 'é').count(),
+            LOGGED_QUERY_CHARS
+        );
+    }
 }

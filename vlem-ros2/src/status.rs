@@ -43,6 +43,8 @@ pub enum Counter {
     Queries,
     /// Queries that failed (e.g. an empty map).
     QueryErrors,
+    /// Queries dropped because [`QUERY_QUEUE`](crate::node::QUERY_QUEUE) queries were waiting.
+    QueriesDropped,
     /// Maps published.
     MapsPublished,
 }
@@ -114,6 +116,7 @@ impl Status {
             stalls: self.get(Counter::Stalls),
             queries: self.get(Counter::Queries),
             query_errors: self.get(Counter::QueryErrors),
+            queries_dropped: self.get(Counter::QueriesDropped),
             maps_published: self.get(Counter::MapsPublished),
         }
     }
@@ -150,6 +153,9 @@ pub struct StatusReport {
     pub queries: u64,
     /// Queries that failed.
     pub query_errors: u64,
+    /// Queries dropped because the query queue was full.
+    #[serde(default)]
+    pub queries_dropped: u64,
     /// Maps published.
     pub maps_published: u64,
 }

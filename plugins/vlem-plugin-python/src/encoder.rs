@@ -369,6 +369,17 @@ impl PythonEncoder {
                     ));
                 }
             }
+            // A grid of zeros gives no pixel an embedding: the map would stay empty without a
+            // word (segment tables refuse zero rows themselves).
+            if data.iter().all(|x| *x == 0.0) {
+                return Err(self.output(
+                    METHOD,
+                    format!("a {gh}x{gw} grid whose every value is zero"),
+                    "patch embeddings with at least one nonzero value (an encoder that failed \
+                     silently?)"
+                        .to_owned(),
+                ));
+            }
             let to_u32 = |n: usize| u32::try_from(n).unwrap_or(u32::MAX);
             return PixelEmbeddings::from_patch_grid(
                 width,

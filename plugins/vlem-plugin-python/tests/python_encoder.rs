@@ -130,6 +130,11 @@ fn wrong_outputs_are_errors_that_name_the_method_and_the_shape() {
             "return {'index': np.zeros((23, 37), int), 'table': np.full((1, 2), np.nan)}",
             "non-finite",
         ),
+        // An encoder that failed silently: no pixel would get an embedding.
+        (
+            "return {'grid': np.zeros((2, 3, 2), np.float32)}",
+            "a 2x3 grid whose every value is zero",
+        ),
         ("return 42", "<class 'int'>"),
         (
             "raise RuntimeError('model exploded')",

@@ -72,13 +72,16 @@ pub(super) fn layout(stages: Vec<Stage<'_>>, layout: StageLayout) -> Vec<Vec<Sta
 }
 
 /// Runs the workers in `scope`, the first reading `input`, each handing on to the next through a
-/// queue of `capacity` frames. Returns, once all have ended, every stage's load in pipeline order,
-/// or the first failure in pipeline order.
+/// queue of `capacity` frames. Once `stop` is requested, the frames still queued are dropped
+/// instead of run (a stopped run ends after the frame each stage is working on, not after every
+/// queued frame has gone through a slow encoder). Returns, once all have ended, every stage's load
+/// in pipeline order, or the first failure in pipeline order.
 pub(super) fn run_workers<'scope, 'env: 'scope>(
     scope: &'scope std::thread::Scope<'scope, 'env>,
     groups: Vec<Vec<Stage<'env>>>,
     input: Receiver<Work>,
     capacity: usize,
+    stop: &'env super::StopHandle,
 ) -> Result<Vec<(&'static str, StageLoad)>> {
     let count = groups.len();
     let mut input = Some(input);
@@ -96,7 +99,7 @@ pub(super) fn run_workers<'scope, 'env: 'scope>(
         let names: Vec<&'static str> = group.iter().map(|s| s.name).collect();
         handles.push((
             names,
-            scope.spawn(move || worker(group, &receiver, output.as_ref())),
+            scope.spawn(move || worker(group, &receiver, output.as_ref(), stop)),
         ));
         input = next;
     }
@@ -127,6 +130,7 @@ fn worker(
     mut stages: Vec<Stage<'_>>,
     input: &Receiver<Work>,
     output: Option<&SyncSender<Work>>,
+    stop: &super::StopHandle,
 ) -> Result<Vec<(&'static str, StageLoad)>> {
     let mut loads = vec![StageLoad::default(); stages.len()];
     let mut wait_input = Duration::ZERO;
@@ -137,6 +141,9 @@ fn worker(
             break;
         };
         wait_input += waited.elapsed();
+        if stop.requested() {
+            continue; // Drained, not run: the run is ending.
+        }
         for (stage, load) in stages.iter_mut().zip(&mut loads) {
             let started = Instant::now();
             (stage.run)(&mut work).map_err(|e| CoreError::AtFrame {
@@ -192,7 +199,18 @@ mod tests {
         layout_kind: StageLayout,
         fail: Option<(&'static str, usize)>,
     ) -> Result<[Vec<usize>; 3]> {
+        run_stopping(layout_kind, fail, None)
+    }
+
+    /// [`run`], the encode stage asking the run to stop at frame `stop_at`.
+    fn run_stopping(
+        layout_kind: StageLayout,
+        fail: Option<(&'static str, usize)>,
+        stop_at: Option<usize>,
+    ) -> Result<[Vec<usize>; 3]> {
         let seen: [Mutex<Vec<usize>>; 3] = Default::default();
+        let stop = crate::pipeline::StopHandle::default();
+        let stop = &stop;
         let result = std::thread::scope(|scope| {
             let stages = ["propose", "encode", "integrate"]
                 .into_iter()
@@ -208,6 +226,9 @@ mod tests {
                                 });
                             }
                             seen.lock().unwrap().push(w.frame.index);
+                            if name == "encode" && stop_at == Some(w.frame.index) {
+                                stop.stop();
+                            }
                             Ok(())
                         }) as StageFn<'_>,
                     }
@@ -221,7 +242,7 @@ mod tests {
                     }
                 }
             });
-            let loads = run_workers(scope, layout(stages, layout_kind), receiver, 1);
+            let loads = run_workers(scope, layout(stages, layout_kind), receiver, 1, stop);
             feeder.join().unwrap();
             loads
         });
@@ -242,6 +263,17 @@ mod tests {
     }
 
     #[test]
+    fn a_stop_drops_the_queued_frames_instead_of_running_them() {
+        for layout_kind in [StageLayout::Overlapped, StageLayout::Serial] {
+            let [proposed, encoded, integrated] = run_stopping(layout_kind, None, Some(5)).unwrap();
+            // The encoder finishes the frame it holds and runs none of the queued ones.
+            assert_eq!(encoded, (0..=5).collect::<Vec<_>>(), "{layout_kind:?}");
+            assert!(integrated.iter().all(|&i| i <= 5), "{layout_kind:?}");
+            assert!(proposed.len() < 20, "{layout_kind:?}: {proposed:?}");
+        }
+    }
+
+    #[test]
     fn a_failure_names_the_stage_and_frame_and_later_stages_finish_what_they_hold() {
         for layout_kind in [StageLayout::Overlapped, StageLayout::Serial] {
             let err = run(layout_kind, Some(("encode", 7))).unwrap_err();
@@ -253,6 +285,7 @@ mod tests {
         }
         // What the integration stage saw when encoding failed at frame 7: every frame before it.
         let seen: [Mutex<Vec<usize>>; 1] = Default::default();
+        let stop = crate::pipeline::StopHandle::default();
         let _ = std::thread::scope(|scope| {
             let seen = &seen[0];
             let stages = vec![
@@ -283,7 +316,13 @@ mod tests {
                     }
                 }
             });
-            run_workers(scope, layout(stages, StageLayout::Overlapped), receiver, 1)
+            run_workers(
+                scope,
+                layout(stages, StageLayout::Overlapped),
+                receiver,
+                1,
+                &stop,
+            )
         });
         assert_eq!(seen[0].lock().unwrap().clone(), (0..7).collect::<Vec<_>>());
     }

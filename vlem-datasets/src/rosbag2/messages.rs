@@ -456,6 +456,9 @@ pub fn pose_from_parts(t: [f64; 3], q: [f64; 4]) -> Result<Pose, String> {
     if t.iter().chain(&q).any(|v| !v.is_finite()) {
         return Err("the pose is not finite".to_owned());
     }
+    if let Some(why) = vlem_core::types::implausible_position(t) {
+        return Err(why);
+    }
     let quaternion = Quaternion::new(q[3], q[0], q[1], q[2]);
     let norm = quaternion.norm();
     if (norm - 1.0).abs() > 0.01 {
@@ -668,6 +671,12 @@ mod tests {
             pose_from_parts([0.0; 3], [0.0; 4])
                 .unwrap_err()
                 .contains("norm")
+        );
+        // A tf of 1e300 m is finite in f64, but no camera pose.
+        assert!(
+            pose_from_parts([1e300, 0.0, 0.0], [0.0, 0.0, 0.0, 1.0])
+                .unwrap_err()
+                .contains("from the map's origin")
         );
     }
 
