@@ -17,16 +17,7 @@ pub fn linear(vb: VarBuilder, in_dim: usize, out_dim: usize) -> Result<Linear> {
 /// Applies a linear layer to a tensor of any rank (candle's `Linear` wants rank 2-4 with a
 /// matching batch layout; this flattens the leading dimensions).
 pub fn apply_linear(layer: &Linear, xs: &Tensor) -> Result<Tensor> {
-    let dims = xs.dims().to_vec();
-    let last = dims.len().saturating_sub(1);
-    let rows: usize = dims[..last].iter().product();
-    let in_dim = dims.get(last).copied().unwrap_or(0);
-    let out = layer.forward(&xs.reshape((rows, in_dim))?)?;
-    let mut out_dims = dims;
-    if let Some(d) = out_dims.last_mut() {
-        *d = out.dim(1)?;
-    }
-    out.reshape(out_dims)
+    crate::attention::Project::project(layer, xs)
 }
 
 /// `nn.LayerNorm(dim, eps)` over the last dimension.

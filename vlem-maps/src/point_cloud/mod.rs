@@ -36,7 +36,7 @@ use crate::kit::{
     positive_metres, unit_weight,
 };
 #[cfg(feature = "candle")]
-use crate::storage::{DeviceTable, FrameTable, Lookups, swap_removal_moves};
+use crate::storage::{FrameTable, Lookups, swap_removal_moves};
 use crate::storage::{EmbeddingStore, Table, fuse_into};
 
 /// A frame's embeddings as uploaded to a device table (nothing in a build without one).
@@ -112,16 +112,8 @@ impl PointCloudConfig {
         device: &candle_core::Device,
     ) -> Result<PointCloudMap, CoreError> {
         let dim = self.validate(encoder_dim)?;
-        if dim == 0 {
-            return Ok(PointCloudMap::new(self.clone(), 0));
-        }
-        let table = DeviceTable::new(device, dim, self.precision, self.max_points)
-            .map_err(|e| e.into_core(StageKind::Map, NAME))?;
-        Ok(PointCloudMap::with_table(
-            self.clone(),
-            dim,
-            Table::Device(table),
-        ))
+        let table = Table::on_candle(NAME, device, dim, self.precision, self.max_points)?;
+        Ok(PointCloudMap::with_table(self.clone(), dim, table))
     }
 }
 

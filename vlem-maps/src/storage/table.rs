@@ -45,6 +45,27 @@ impl Table {
             .map_err(|e| e.into_core(StageKind::Map, map))
     }
 
+    /// The table of map `map` on the candle device `device` whatever the config names (how the
+    /// tests run the device table on candle's CPU); a geometry-only map stays on the host.
+    ///
+    /// # Errors
+    /// A stage error naming `map` when the device cannot hold the table.
+    #[cfg(feature = "candle")]
+    pub(crate) fn on_candle(
+        map: &str,
+        device: &candle_core::Device,
+        dim: usize,
+        precision: Precision,
+        capacity: usize,
+    ) -> Result<Self, CoreError> {
+        if dim == 0 {
+            return Ok(Self::Host(EmbeddingStore::new(dim, precision)));
+        }
+        DeviceTable::new(device, dim, precision, capacity)
+            .map(Self::Device)
+            .map_err(|e| e.into_core(StageKind::Map, map))
+    }
+
     #[cfg(feature = "candle")]
     fn open_device(
         device: ComputeDevice,

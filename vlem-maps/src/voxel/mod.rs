@@ -36,7 +36,7 @@ use crate::error::MapError;
 use crate::kit::memory::hash_buckets;
 use crate::kit::{FramePixels, check_observation, check_snapshot, invalid_parameter};
 #[cfg(feature = "candle")]
-use crate::storage::{CHUNK_ROWS, DeviceTable, FrameTable, swap_removal_moves};
+use crate::storage::{CHUNK_ROWS, FrameTable, swap_removal_moves};
 use crate::storage::{EmbeddingStore, Table};
 
 /// The registered name.
@@ -89,16 +89,8 @@ impl VoxelConfig {
         device: &candle_core::Device,
     ) -> Result<VoxelMap, CoreError> {
         let dim = self.validate(encoder_dim)?;
-        if dim == 0 {
-            return Ok(VoxelMap::new(self.clone(), 0));
-        }
-        let table = DeviceTable::new(device, dim, self.precision, self.max_voxels)
-            .map_err(|e| e.into_core(StageKind::Map, NAME))?;
-        Ok(VoxelMap::with_table(
-            self.clone(),
-            dim,
-            Table::Device(table),
-        ))
+        let table = Table::on_candle(NAME, device, dim, self.precision, self.max_voxels)?;
+        Ok(VoxelMap::with_table(self.clone(), dim, table))
     }
 
     /// Checks the parameters; returns the embedding dimension.
