@@ -35,9 +35,9 @@ use crate::kit::{
     FramePixels, at_least_one, check_observation, check_snapshot, embedding, invalid_parameter,
     positive_metres, unit_weight,
 };
+use crate::storage::{EmbeddingStore, Table, fuse_into};
 #[cfg(feature = "candle")]
 use crate::storage::{FrameTable, Lookups, swap_removal_moves};
-use crate::storage::{EmbeddingStore, Table, fuse_into};
 
 /// A frame's embeddings as uploaded to a device table (nothing in a build without one).
 #[cfg(feature = "candle")]
