@@ -129,7 +129,7 @@ vlem_core::register_map!(
 );
 
 /// The point-cloud embedding map.
-#[derive(Clone, Debug)]
+#[derive(Debug)]
 pub struct PointCloudMap {
     config: PointCloudConfig,
     dim: usize,

@@ -36,7 +36,10 @@ fn table_error(e: candle_core::Error) -> MapError {
 }
 
 /// A `rows × dim` embedding table in one preallocated tensor on a candle device.
-#[derive(Clone, Debug)]
+///
+/// Not `Clone`: a candle tensor's clone shares its storage, and the table writes in place, so a
+/// clone would change with the original.
+#[derive(Debug)]
 pub struct DeviceTable {
     dim: usize,
     precision: Precision,
@@ -305,7 +308,7 @@ impl DeviceTable {
         self.capacity() * self.dim * self.values.dtype().size_in_bytes()
     }
 
-    /// Makes room for `rows` rows: a new tensor a quarter larger than needed, the rows copied
+    /// Makes room for `rows` rows: a new tensor of at least a quarter more rows, the rows copied
     /// over. With a capacity of the budget this happens once, when the first frame takes the
     /// map over its budget before the merge brings it back.
     fn ensure_capacity(&mut self, rows: usize) -> CandleResult<()> {

@@ -14,8 +14,8 @@ use super::DeviceTable;
 use super::{EmbeddingStore, Precision};
 use crate::error::MapError;
 
-/// A map's embedding table, on the host or on a device.
-#[derive(Clone, Debug)]
+/// A map's embedding table, on the host or on a device (not `Clone`, as the device table is not).
+#[derive(Debug)]
 pub(crate) enum Table {
     /// Host memory (`device = "cpu"`, and every geometry-only map).
     Host(EmbeddingStore),

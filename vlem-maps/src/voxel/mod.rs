@@ -191,7 +191,7 @@ type VoxelIndex = HashMap<VoxelKey, u32, BuildHasherDefault<KeyHasher>>;
 const CHUNK_VALUES: usize = 1 << 22;
 
 /// The semantic voxel map.
-#[derive(Clone, Debug)]
+#[derive(Debug)]
 pub struct VoxelMap {
     config: VoxelConfig,
     dim: usize,
