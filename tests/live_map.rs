@@ -243,3 +243,55 @@ fn a_pipeline_without_a_map_says_so_through_the_handle() {
     .to_string();
     assert!(err.contains("without an encoder"), "{err}");
 }
+
+/// `LiveMap::summary` (what `/status` reports) never takes the map's lock: it answers while a
+/// long read holds the map and the run's next integration waits for it (std's lock then makes
+/// every new reader wait too), and it matches the map after the run.
+#[test]
+fn the_summary_answers_while_a_reader_holds_the_map_and_a_writer_waits() {
+    let (mut pipeline, mut source) = demo();
+    let live = pipeline.live();
+    assert_eq!(live.summary().unwrap().points, 0);
+    let (sent, received) = mpsc::channel();
+    std::thread::scope(|scope| {
+        live.read(|_| {
+            scope.spawn(|| pipeline.run(source.as_mut(), None, &no_progress).unwrap());
+            // Long enough for the run to reach its first integration and wait for the lock.
+            std::thread::sleep(Duration::from_millis(500));
+            let reader = live.clone();
+            scope.spawn(move || sent.send(reader.summary()).unwrap());
+            let summary = received
+                .recv_timeout(Duration::from_secs(60))
+                .expect("the summary answers without the map's lock")
+                .unwrap();
+            assert_eq!((summary.kind.as_str(), summary.points), ("point-cloud", 0));
+        })
+        .unwrap();
+    });
+    let summary = live.summary().unwrap();
+    let status = live.status();
+    assert_eq!(summary.points, status.map_len);
+    assert_eq!(summary.frames_integrated, status.frames_integrated);
+    assert_eq!(summary.dim, 11);
+    assert_eq!(status.state, RunState::Finished);
+}
+
+/// An owner that writes outputs after the run announces them: the run then ends `saving`, and
+/// `finished` only once the owner says they are written.
+#[test]
+fn announced_outputs_hold_finished_until_they_are_written() {
+    let (mut pipeline, mut source) = demo();
+    let live = pipeline.live();
+    live.announce_outputs();
+    pipeline
+        .run(source.as_mut(), Some(3), &no_progress)
+        .unwrap();
+    assert_eq!(live.status().state, RunState::Saving);
+    live.outputs_written();
+    assert_eq!(live.status().state, RunState::Finished);
+    // Without an announcement the next run finishes at once.
+    pipeline
+        .run(source.as_mut(), Some(3), &no_progress)
+        .unwrap();
+    assert_eq!(live.status().state, RunState::Finished);
+}

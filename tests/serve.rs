@@ -110,6 +110,10 @@ fn every_endpoint_answers_and_bad_requests_get_4xx() {
     let first = json(&body);
     assert_eq!(first["encoder"], "colour-names");
     let done = wait_finished(&address);
+    // `finished` comes only once the outputs are written (`saving` before).
+    for output in ["map.vlem", "trajectory.tum", "stats.json"] {
+        assert!(dir.path().join(output).is_file(), "{output} is written");
+    }
     assert!(
         first["run"]["frames_integrated"].as_u64() <= done["run"]["frames_integrated"].as_u64()
     );
@@ -337,6 +341,147 @@ fn hostile_requests_are_refused() {
     wait_finished(&address);
     let (status, reply) = post(&address, "/query", r#"{"texts": ["red"]}"#);
     assert_eq!(status, 200, "{reply}");
+}
+
+/// Bytes of `head` written on a fresh connection, without a body; the first answer line's
+/// status and the JSON error's message.
+fn raw_head(address: &str, head: &[u8]) -> (u16, String) {
+    use std::io::{Read, Write};
+    let mut stream = std::net::TcpStream::connect(address).unwrap();
+    stream
+        .set_read_timeout(Some(Duration::from_secs(60)))
+        .unwrap();
+    // The server may answer (and close) before all of an oversized head is sent.
+    let _ = stream.write_all(head);
+    let mut answer = Vec::new();
+    let _ = stream.read_to_end(&mut answer);
+    let answer = String::from_utf8_lossy(&answer).into_owned();
+    let status = answer
+        .split_whitespace()
+        .nth(1)
+        .and_then(|s| s.parse().ok())
+        .unwrap_or_else(|| panic!("an HTTP answer: {answer}"));
+    let body = answer.split_once("\r\n\r\n").map_or("", |(_, b)| b);
+    let message = serde_json::from_str::<serde_json::Value>(body)
+        .unwrap_or_else(|_| panic!("a JSON error body: {answer}"))["error"]
+        .as_str()
+        .unwrap()
+        .to_owned();
+    (status, message)
+}
+
+/// Opens a connection and sends a POST head announcing a body it never sends.
+fn stalled_post(address: &str, host: &str) -> std::net::TcpStream {
+    use std::io::Write;
+    let mut stream = std::net::TcpStream::connect(address).unwrap();
+    write!(
+        stream,
+        "POST /query HTTP/1.1\r\n{host}\r\nContent-Type: application/json\r\n\
+         Content-Length: 2000\r\n\r\n{{\"texts\""
+    )
+    .unwrap();
+    stream
+}
+
+#[test]
+fn oversized_stalled_and_surplus_connections_are_bounded() {
+    let dir = tempfile::tempdir().unwrap();
+    let served = serve(dir.path(), &[]);
+    let address = served.address.clone();
+    let port = address.rsplit(':').next().unwrap();
+    let host = format!("Host: 127.0.0.1:{port}");
+
+    // Heads over the limits, and other versions of HTTP, get their statuses with a JSON message.
+    let long_url = format!(
+        "GET /status?{} HTTP/1.1\r\n{host}\r\n\r\n",
+        "a".repeat(10_000)
+    );
+    let (status, message) = raw_head(&address, long_url.as_bytes());
+    assert_eq!(status, 414, "{message}");
+    assert!(message.contains("8192 bytes"), "{message}");
+    let big_header = format!(
+        "GET /status HTTP/1.1\r\n{host}\r\nX-Big: {}\r\n\r\n",
+        "a".repeat(1 << 20)
+    );
+    let (status, message) = raw_head(&address, big_header.as_bytes());
+    assert_eq!(status, 431, "{message}");
+    let (status, message) = raw_head(
+        &address,
+        format!("GET /status HTTP/2.0\r\n{host}\r\n\r\n").as_bytes(),
+    );
+    assert_eq!(status, 505, "{message}");
+
+    // Requests whose bodies never come hold no one up: /status and queries are answered.
+    let stalled: Vec<_> = (0..8).map(|_| stalled_post(&address, &host)).collect();
+    let (status, _) = get(&address, "/status");
+    assert_eq!(status, 200, "status is answered beside stalled requests");
+    let (status, reply) = post(&address, "/query", r#"{"texts": ["red"]}"#);
+    assert_eq!(status, 200, "{reply}");
+
+    // Connections past the cap are answered 503 by the accept loop, which goes on accepting.
+    let mut idle = Vec::new();
+    let refused = loop {
+        use std::io::Read;
+        assert!(
+            idle.len() < 200,
+            "the connection cap refuses some connection"
+        );
+        let mut stream = std::net::TcpStream::connect(&address).unwrap();
+        stream
+            .set_read_timeout(Some(Duration::from_millis(100)))
+            .unwrap();
+        let mut first = [0u8; 12];
+        match stream.read(&mut first) {
+            Ok(n) if n > 0 => break String::from_utf8_lossy(&first[..n]).into_owned(),
+            // Accepted and waiting for a request: an idle connection, which counts.
+            _ => idle.push(stream),
+        }
+    };
+    assert!(refused.starts_with("HTTP/1.1 503"), "{refused}");
+    drop(idle);
+    drop(stalled);
+    // Once they close, the server answers again (connections end as their sockets close).
+    let start = Instant::now();
+    loop {
+        let (status, _) = get(&address, "/status");
+        if status == 200 {
+            break;
+        }
+        assert!(start.elapsed() < Duration::from_secs(60), "served again");
+        std::thread::sleep(Duration::from_millis(50));
+    }
+    wait_finished(&address);
+}
+
+#[test]
+fn a_stalled_client_does_not_keep_the_run_from_exiting() {
+    let dir = tempfile::tempdir().unwrap();
+    let out = dir.path().to_str().unwrap().to_owned();
+    // Without --serve-after: the run stops serving once its outputs are written.
+    let (mut child, address) = spawn_serving(&[
+        "run",
+        "--config",
+        "configs/demo.toml",
+        "--out",
+        &out,
+        "--serve",
+        "127.0.0.1:0",
+    ]);
+    let port = address.rsplit(':').next().unwrap();
+    let _stalled = stalled_post(&address, &format!("Host: 127.0.0.1:{port}"));
+    let start = Instant::now();
+    let status = loop {
+        if let Some(status) = child.try_wait().unwrap() {
+            break status;
+        }
+        if start.elapsed() > Duration::from_secs(180) {
+            let _ = child.kill();
+            panic!("vlem run still runs 180 s later, held by a stalled connection");
+        }
+        std::thread::sleep(Duration::from_millis(100));
+    };
+    assert!(status.success(), "{status}");
+    assert!(dir.path().join("map.vlem").is_file());
 }
 
 #[test]

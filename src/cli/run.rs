@@ -203,6 +203,9 @@ fn run(mut config: Config, ctx: BuildContext, out: &Path, options: &RunOptions<'
         );
     }
 
+    // `/status` says `saving` until the outputs below are written, then `finished`, so a client
+    // that waits for `finished` finds map.vlem and the rest complete.
+    live.announce_outputs();
     super::interrupt::install(pipeline.stop_handle())?;
     let device_memory = vlem_backends::DeviceMemoryPeak::start(&configured_devices(&config));
     let report = match track_and_map(&mut pipeline, source.as_mut(), recording.as_ref()) {
@@ -215,6 +218,7 @@ fn run(mut config: Config, ctx: BuildContext, out: &Path, options: &RunOptions<'
     let peak_device_bytes = device_memory.map(vlem_backends::DeviceMemoryPeak::finish);
     write_outputs(&config, &pipeline, &report, out, peak_device_bytes)?;
     if report.stopped {
+        live.outputs_written();
         super::interrupt::note_run_cut_short();
         // Interrupted: the outputs are written; the user asked to end, so no queries and no
         // colour model, and no serving after.
@@ -275,6 +279,7 @@ fn run(mut config: Config, ctx: BuildContext, out: &Path, options: &RunOptions<'
             );
         }
     }
+    live.outputs_written();
     if let Some(server) = server {
         if options.serve.serve_after {
             eprintln!(

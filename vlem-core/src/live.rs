@@ -15,8 +15,12 @@
 //!   inside.
 //! - Run progress and the tracker's latest pose live in a separate small mutex that the tracking
 //!   thread updates per frame: reading the pose never waits for integration.
+//! - The map's size (kind, points, bytes) is copied into another small mutex at the end of every
+//!   write, so a status request ([`LiveMap::summary`]) never waits behind a long query's read
+//!   lock and the writer queued after it.
 
 use std::path::Path;
+use std::sync::atomic::{AtomicBool, Ordering};
 use std::sync::{Arc, Mutex, PoisonError, RwLock, RwLockReadGuard};
 
 use serde::{Deserialize, Serialize};
@@ -41,6 +45,10 @@ struct Shared {
     encoder: Option<Arc<dyn Encoder>>,
     metadata: Mutex<MapMetadata>,
     status: Mutex<RunStatus>,
+    /// The map's size as of the last write (`None` without a map).
+    summary: Mutex<Option<MapSummary>>,
+    /// Whether the owner writes outputs after a run ([`LiveMap::announce_outputs`]).
+    outputs_follow: AtomicBool,
 }
 
 /// The map and how many frames it holds, changed together under the write lock.
@@ -72,7 +80,11 @@ pub enum RunState {
     Idle,
     /// Frames are being tracked and integrated.
     Running,
-    /// The last run ended normally.
+    /// The run's frames are all mapped and its owner is writing its outputs (map file,
+    /// trajectory, statistics); `Finished` follows once they are complete. Only owners that
+    /// announce outputs ([`LiveMap::announce_outputs`], as `vlem run` does) pass through it.
+    Saving,
+    /// The last run ended normally (and its outputs, where announced, are written).
     Finished,
     /// The last run stopped with an error (its message).
     Failed(String),
@@ -120,6 +132,36 @@ pub struct RunStatus {
     pub latest_pose: Option<PoseStamp>,
 }
 
+/// The map's kind and size as of its last change, read without the map's lock.
+#[derive(Clone, Debug, PartialEq, Eq, Serialize, Deserialize)]
+pub struct MapSummary {
+    /// Registered map name.
+    pub kind: String,
+    /// Map elements.
+    pub points: usize,
+    /// Embedding dimension.
+    pub dim: usize,
+    /// Host bytes of map storage.
+    pub host_bytes: usize,
+    /// Device bytes of map storage (`[map] device = "cuda"`), 0 for a map on the host.
+    pub device_bytes: usize,
+    /// Frames integrated by this pipeline (across runs).
+    pub frames_integrated: usize,
+}
+
+impl MapSummary {
+    fn of(state: &MapState) -> Self {
+        Self {
+            kind: state.map.name().to_owned(),
+            points: state.map.len(),
+            dim: state.map.dim(),
+            host_bytes: state.map.memory_bytes(),
+            device_bytes: state.map.device_memory_bytes(),
+            frames_integrated: state.frames_integrated,
+        }
+    }
+}
+
 impl LiveMap {
     pub(crate) fn new(
         map: Option<Box<dyn EmbeddingMap>>,
@@ -128,15 +170,15 @@ impl LiveMap {
         let map_len = map.as_ref().map_or(0, |m| m.len());
         let map_host_bytes = map.as_ref().map_or(0, |m| m.memory_bytes());
         let map_device_bytes = map.as_ref().map_or(0, |m| m.device_memory_bytes());
+        let state = map.map(|map| MapState {
+            map,
+            frames_integrated: 0,
+            last_frame: None,
+        });
+        let summary = state.as_ref().map(MapSummary::of);
         Self {
             shared: Arc::new(Shared {
-                map: map.map(|map| {
-                    RwLock::new(MapState {
-                        map,
-                        frames_integrated: 0,
-                        last_frame: None,
-                    })
-                }),
+                map: state.map(RwLock::new),
                 encoder,
                 metadata: Mutex::new(MapMetadata {
                     vlem_version: env!("CARGO_PKG_VERSION").into(),
@@ -148,6 +190,8 @@ impl LiveMap {
                     map_device_bytes,
                     ..RunStatus::default()
                 }),
+                summary: Mutex::new(summary),
+                outputs_follow: AtomicBool::new(false),
             }),
         }
     }
@@ -191,9 +235,43 @@ impl LiveMap {
 
     /// Applies `change` to the map under the write lock (the embedding thread's integration).
     pub(crate) fn write<R>(&self, change: impl FnOnce(&mut MapState) -> R) -> Result<R> {
-        let lock = self.shared.map.as_ref().ok_or_else(no_map)?;
-        let mut state = lock.write().map_err(|_| poisoned())?;
-        Ok(change(&mut state))
+        let map = self.shared.map.as_ref().ok_or_else(no_map)?;
+        let mut state = map.write().map_err(|_| poisoned())?;
+        let changed = change(&mut state);
+        *lock(&self.shared.summary) = Some(MapSummary::of(&state));
+        Ok(changed)
+    }
+
+    /// The map's kind and size as of its last change, without waiting for the map's lock (a
+    /// status line stays prompt while long queries read the map); `None` without a map.
+    pub fn summary(&self) -> Option<MapSummary> {
+        lock(&self.shared.summary).clone()
+    }
+
+    /// Says that outputs are written after the next run: it then ends in [`RunState::Saving`]
+    /// rather than `Finished`, until [`LiveMap::outputs_written`]. A client polling for
+    /// `finished` (over HTTP, say) then finds the map file and the rest complete.
+    pub fn announce_outputs(&self) {
+        self.shared.outputs_follow.store(true, Ordering::Relaxed);
+    }
+
+    /// Ends [`RunState::Saving`]: the outputs announced are written.
+    pub fn outputs_written(&self) {
+        self.shared.outputs_follow.store(false, Ordering::Relaxed);
+        self.update_status(|status| {
+            if status.state == RunState::Saving {
+                status.state = RunState::Finished;
+            }
+        });
+    }
+
+    /// The state a run that ended well reports: `Saving` while announced outputs are pending.
+    pub(crate) fn finished_state(&self) -> RunState {
+        if self.shared.outputs_follow.load(Ordering::Relaxed) {
+            RunState::Saving
+        } else {
+            RunState::Finished
+        }
     }
 
     /// Every element as point, colour and embedding, with the metadata a map file needs; its

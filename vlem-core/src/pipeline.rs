@@ -536,9 +536,10 @@ impl Pipeline {
             (Err(e), _) | (Ok(_), Err(e) | Ok(Err(e))) => Err(e),
             (Ok(embedding), Ok(Ok(tracking))) => Ok((embedding, tracking)),
         };
+        let finished = self.live.finished_state();
         self.live.update_status(|status| {
             status.state = match &outcome {
-                Ok(_) => RunState::Finished,
+                Ok(_) => finished,
                 Err(e) => RunState::Failed(message_chain(e)),
             }
         });

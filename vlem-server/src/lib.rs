@@ -2,7 +2,8 @@
 //!
 //! Why it exists: a robot, a notebook or a second terminal wants to ask "where is the mug?" while
 //! `vlem run` is still mapping. [`QueryServer`] serves a [`vlem_core::live::LiveMap`] on a
-//! loopback address with a few worker threads; every answer comes from `vlem-query`, the same
+//! loopback address, a thread per connection with every connection, request and map pass bounded
+//! (`server.rs` lists the bounds, `http.rs` the per-connection limits); every answer comes from `vlem-query`, the same
 //! code `vlem query --map` runs, so a live answer and a saved-map answer print the same. A request
 //! never stops the mapping run: bad requests get a 4xx status with a message, and a handler that
 //! fails unexpectedly answers 500.
@@ -24,6 +25,7 @@ pub mod api;
 mod client;
 mod error;
 mod guard;
+mod http;
 mod server;
 
 pub use client::Client;

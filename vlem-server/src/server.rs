@@ -1,20 +1,33 @@
-//! The HTTP side: a loopback listener, a few worker threads, and one handler per endpoint.
+//! The server: a loopback listener, a thread per connection (at most [`MAX_CONNECTIONS`]), and
+//! one handler per endpoint.
+//!
+//! Why it is shaped this way: every request is a blocking pass over the map or a status line, so
+//! threads fit better than an async runtime; what makes it safe to leave running beside a
+//! mapping run for hours is that every resource is bounded:
+//! - connections: at most [`MAX_CONNECTIONS`]; one more is answered 503 by the accept loop itself,
+//!   which never exits on an error (a full file table only pauses it);
+//! - each connection's reads and writes: sizes and timeouts in [`crate::http`];
+//! - the map work: at most [`WORK_SLOTS`] queries, heatmaps and snapshots at once (more wait up to
+//!   [`WORK_WAIT`], then 503), and at most [`DOWNLOADS`] map downloads at once, each holding one
+//!   snapshot (more get 503 at once);
+//! - `/status` reads copies of the counters and the map's size, never the map's lock, so it
+//!   answers at once under any query load.
 //!
 //! Every handler turns its failures into an HTTP status with a JSON message; a panic inside one
 //! (a bug) is caught and answered with 500, so no request can end the mapping run that owns the
 //! live map.
 
+use std::collections::HashMap;
 use std::io::{Read, Write};
-use std::net::{SocketAddr, ToSocketAddrs};
+use std::net::{SocketAddr, TcpListener, TcpStream, ToSocketAddrs};
 use std::panic::{AssertUnwindSafe, catch_unwind};
 use std::path::PathBuf;
-use std::sync::atomic::{AtomicBool, Ordering};
-use std::sync::{Arc, Mutex, PoisonError};
+use std::sync::atomic::{AtomicBool, AtomicU64, Ordering};
+use std::sync::{Arc, Condvar, Mutex, MutexGuard, PoisonError};
 use std::thread::JoinHandle;
-use std::time::Duration;
+use std::time::{Duration, Instant};
 
 use serde::Serialize;
-use tiny_http::{Header, Method, Request, Response, Server, StatusCode};
 use vlem_core::BuildContext;
 use vlem_core::live::LiveMap;
 use vlem_query::QueryError;
@@ -25,13 +38,25 @@ use vlem_query::heatmap::{gripper_vertices, heatmap_ply};
 use crate::api::{ErrorReply, MapStatus, QueryRequest, SnapshotSaved, Status};
 use crate::error::ServerError;
 use crate::guard::{Access, RequestHead, validate_token};
+use crate::http::{Connection, Head, Limits, ReadError};
 
-/// Largest request body accepted (texts and options only).
-const MAX_BODY_BYTES: usize = 1 << 20;
-/// Worker threads: a slow query (clustering a large map) does not hold up status requests.
-const WORKERS: usize = 4;
-/// How often an idle worker looks at the stop flag.
-const POLL: Duration = Duration::from_millis(100);
+/// Open connections; one more is answered 503. Each costs a thread and at most a few tens of KiB
+/// of buffers, so the cap keeps a flood of idle connections (which once exhausted the threads of
+/// the process and killed the old server's accept loop) from touching the mapping run.
+pub(crate) const MAX_CONNECTIONS: usize = 64;
+/// Queries, heatmaps and snapshots served at once: each is a pass over the map (and a snapshot a
+/// copy of it), so more at once would only share the same cores and memory.
+pub(crate) const WORK_SLOTS: usize = 4;
+/// How long a request waits for a work slot before it is answered 503.
+pub(crate) const WORK_WAIT: Duration = Duration::from_secs(30);
+/// Map downloads at once; each holds one snapshot of the map (its size in `/status` `map.bytes`)
+/// while it is sent.
+pub(crate) const DOWNLOADS: usize = 2;
+/// How long [`QueryServer::shutdown`] lets answers in flight finish before it closes their
+/// connections.
+const GRACE: Duration = Duration::from_secs(5);
+/// How long the accept loop pauses after a failed accept (a full file table, say).
+const ACCEPT_BACKOFF: Duration = Duration::from_millis(50);
 
 /// Where the server resolves things, who may ask it, and how much one request may ask.
 #[derive(Clone)]
@@ -102,8 +127,19 @@ impl Default for RequestLimits {
 /// A running query server; dropping it (or [`QueryServer::shutdown`]) stops it.
 pub struct QueryServer {
     address: SocketAddr,
-    stop: Arc<AtomicBool>,
-    workers: Vec<JoinHandle<()>>,
+    shared: Arc<Shared>,
+    accept: Option<JoinHandle<()>>,
+}
+
+/// What the accept loop and the connection threads share.
+struct Shared {
+    handler: Handler,
+    stop: AtomicBool,
+    /// Open connections by id (a second handle on each socket, to close it on shutdown).
+    open: Mutex<HashMap<u64, TcpStream>>,
+    /// Signalled when a connection closes.
+    closed: Condvar,
+    next_id: AtomicU64,
 }
 
 impl QueryServer {
@@ -133,36 +169,38 @@ impl QueryServer {
                 });
             }
         }
-        let server = Server::http(socket).map_err(|e| ServerError::Listen {
+        let listen_error = |e: std::io::Error| ServerError::Listen {
             address: address.into(),
             reason: e.to_string(),
-        })?;
-        let bound = server
-            .server_addr()
-            .to_ip()
-            .ok_or_else(|| ServerError::Listen {
-                address: address.into(),
-                reason: "not an IP socket".into(),
-            })?;
-        let server = Arc::new(server);
-        let stop = Arc::new(AtomicBool::new(false));
+        };
+        let listener = TcpListener::bind(socket).map_err(listen_error)?;
+        let bound = listener.local_addr().map_err(listen_error)?;
         let access = Access::new(bound.port(), options.token.clone());
-        let shared = Arc::new(Handler {
-            live,
-            options,
-            access,
-            snapshot_lock: Mutex::new(()),
+        let shared = Arc::new(Shared {
+            handler: Handler {
+                live,
+                options,
+                access,
+                snapshot_lock: Mutex::new(()),
+                work: Arc::new(Slots::new(WORK_SLOTS)),
+                downloads: Arc::new(Slots::new(DOWNLOADS)),
+            },
+            stop: AtomicBool::new(false),
+            open: Mutex::new(HashMap::new()),
+            closed: Condvar::new(),
+            next_id: AtomicU64::new(0),
         });
-        let workers = (0..WORKERS)
-            .map(|_| {
-                let (server, stop, handler) = (server.clone(), stop.clone(), shared.clone());
-                std::thread::spawn(move || serve(&server, &stop, &handler))
+        let accept = std::thread::Builder::new()
+            .name("vlem-http-accept".into())
+            .spawn({
+                let shared = shared.clone();
+                move || accept_loop(&listener, &shared)
             })
-            .collect();
+            .map_err(listen_error)?;
         Ok(Self {
             address: bound,
-            stop,
-            workers,
+            shared,
+            accept: Some(accept),
         })
     }
 
@@ -174,27 +212,55 @@ impl QueryServer {
     /// Blocks until the server is stopped (it is only stopped by [`QueryServer::shutdown`] from
     /// another owner, so in practice this serves until the process ends).
     pub fn wait(mut self) {
-        for worker in self.workers.drain(..) {
-            let _ = worker.join();
+        if let Some(accept) = self.accept.take() {
+            let _ = accept.join();
         }
     }
 
-    /// Stops accepting requests, lets the ones in flight finish, and joins the workers.
+    /// Stops accepting connections, lets the answers in flight finish (for up to 5 s), and
+    /// closes every connection: idle keep-alive connections and requests whose bodies never
+    /// come end at once, so a stalled client cannot keep the process from exiting.
     pub fn shutdown(mut self) {
-        self.stop_workers();
+        self.stop();
     }
 
-    fn stop_workers(&mut self) {
-        self.stop.store(true, Ordering::Relaxed);
-        for worker in self.workers.drain(..) {
-            let _ = worker.join();
+    fn stop(&mut self) {
+        let Some(accept) = self.accept.take() else {
+            return;
+        };
+        self.shared.stop.store(true, Ordering::SeqCst);
+        // The accept loop blocks in accept(): one connection wakes it to see the flag. If even
+        // that cannot connect (no file descriptors left), the loop is left to end with the
+        // process rather than joined.
+        if TcpStream::connect_timeout(&self.address, Duration::from_secs(1)).is_ok() {
+            let _ = accept.join();
+        }
+        // Reads end now (idle connections, stalled bodies); answers being written go on.
+        for stream in lock(&self.shared.open).values() {
+            let _ = stream.shutdown(std::net::Shutdown::Read);
+        }
+        let deadline = Instant::now() + GRACE;
+        let mut open = lock(&self.shared.open);
+        while !open.is_empty() {
+            let Some(left) = deadline.checked_duration_since(Instant::now()) else {
+                break;
+            };
+            open = self
+                .shared
+                .closed
+                .wait_timeout(open, left)
+                .unwrap_or_else(PoisonError::into_inner)
+                .0;
+        }
+        for stream in open.values() {
+            let _ = stream.shutdown(std::net::Shutdown::Both);
         }
     }
 }
 
 impl Drop for QueryServer {
     fn drop(&mut self) {
-        self.stop_workers();
+        self.stop();
     }
 }
 
@@ -217,14 +283,162 @@ fn loopback_address(address: &str) -> Result<SocketAddr, ServerError> {
     Ok(socket)
 }
 
-fn serve(server: &Server, stop: &AtomicBool, handler: &Handler) {
-    while !stop.load(Ordering::Relaxed) {
-        match server.recv_timeout(POLL) {
-            Ok(Some(request)) => handler.respond(request),
-            Ok(None) => {}
-            // A broken connection concerns that client only.
-            Err(_) => {}
+/// A plain counter's mutex: a panic elsewhere leaves nothing half-changed, so a poisoned lock is
+/// still used.
+fn lock<T>(mutex: &Mutex<T>) -> MutexGuard<'_, T> {
+    mutex.lock().unwrap_or_else(PoisonError::into_inner)
+}
+
+/// Accepts connections until the server stops. Nothing ends it early: a failed accept (a full
+/// file table) pauses it briefly, and a connection it cannot take (the cap, or no thread) is
+/// answered 503 and closed.
+fn accept_loop(listener: &TcpListener, shared: &Arc<Shared>) {
+    loop {
+        let accepted = listener.accept();
+        if shared.stop.load(Ordering::SeqCst) {
+            return;
         }
+        let Ok((stream, _peer)) = accepted else {
+            std::thread::sleep(ACCEPT_BACKOFF);
+            continue;
+        };
+        let id = shared.next_id.fetch_add(1, Ordering::Relaxed);
+        {
+            let mut open = lock(&shared.open);
+            if open.len() >= MAX_CONNECTIONS {
+                drop(open);
+                refuse_busy(
+                    stream,
+                    &format!(
+                        "the server has {MAX_CONNECTIONS} open connections, its limit; close idle \
+                         ones or try again"
+                    ),
+                );
+                continue;
+            }
+            let Ok(handle) = stream.try_clone() else {
+                continue;
+            };
+            open.insert(id, handle);
+        }
+        let spawned = std::thread::Builder::new().name("vlem-http".into()).spawn({
+            let shared = shared.clone();
+            move || {
+                serve_connection(&shared, stream);
+                lock(&shared.open).remove(&id);
+                shared.closed.notify_all();
+            }
+        });
+        if spawned.is_err()
+            && let Some(stream) = lock(&shared.open).remove(&id)
+        {
+            refuse_busy(
+                stream,
+                "the server cannot start a thread for this connection",
+            );
+        }
+    }
+}
+
+/// Answers 503 on a connection that will not be served, without waiting for the client.
+fn refuse_busy(stream: TcpStream, message: &str) {
+    let body = error_body(message);
+    let answer = format!(
+        "HTTP/1.1 503 Service Unavailable\r\nContent-Type: application/json\r\nRetry-After: 1\r\n\
+         Content-Length: {}\r\nConnection: close\r\n\r\n",
+        body.len()
+    );
+    let mut stream = stream;
+    if stream.set_nonblocking(true).is_ok() {
+        let _ = stream.write_all(answer.as_bytes());
+        let _ = stream.write_all(&body);
+    }
+    let _ = stream.shutdown(std::net::Shutdown::Write);
+}
+
+/// One connection's requests, in turn, until it closes, fails, or the server stops.
+fn serve_connection(shared: &Shared, stream: TcpStream) {
+    let mut connection = Connection::new(stream, Limits::SERVER);
+    while !shared.stop.load(Ordering::SeqCst) {
+        let (reply, keep_alive) = match connection.read_head() {
+            Ok(head) => shared.handler.answer(&mut connection, &head),
+            Err(ReadError::Closed) => return,
+            Err(ReadError::Refuse { status, message }) => (Reply::error(status, message), false),
+        };
+        let keep_alive = keep_alive && !shared.stop.load(Ordering::SeqCst);
+        if write_reply(&mut connection, reply, !keep_alive).is_err() || !keep_alive {
+            return;
+        }
+    }
+}
+
+fn write_reply(connection: &mut Connection, reply: Reply, close: bool) -> std::io::Result<()> {
+    let mut headers = vec![("Content-Type", reply.content_type.to_owned())];
+    if let Some(name) = &reply.file_name {
+        headers.push((
+            "Content-Disposition",
+            format!("attachment; filename=\"{name}\""),
+        ));
+    }
+    // Only a server with a token answers 401, with its scheme (RFC 6750).
+    if reply.status == 401 {
+        headers.push(("WWW-Authenticate", "Bearer realm=\"vlem\"".into()));
+    }
+    if reply.status == 503 {
+        headers.push(("Retry-After", "1".into()));
+    }
+    match reply.body {
+        Body::Bytes(bytes) => connection.write_answer(
+            reply.status,
+            &headers,
+            &mut bytes.as_slice(),
+            bytes.len() as u64,
+            close,
+        ),
+        Body::Stream { mut reader, len } => {
+            connection.write_answer(reply.status, &headers, &mut reader, len, close)
+        }
+    }
+}
+
+/// A counting semaphore for the map work.
+struct Slots {
+    free: Mutex<usize>,
+    released: Condvar,
+}
+
+/// A taken slot, given back on drop.
+struct Slot(Arc<Slots>);
+
+impl Drop for Slot {
+    fn drop(&mut self) {
+        *lock(&self.0.free) += 1;
+        self.0.released.notify_one();
+    }
+}
+
+impl Slots {
+    fn new(count: usize) -> Self {
+        Self {
+            free: Mutex::new(count),
+            released: Condvar::new(),
+        }
+    }
+
+    /// A slot, waiting up to `wait` for one.
+    fn take(self: &Arc<Self>, wait: Duration) -> Option<Slot> {
+        let deadline = Instant::now() + wait;
+        let mut free = lock(&self.free);
+        while *free == 0 {
+            let left = deadline.checked_duration_since(Instant::now())?;
+            free = self
+                .released
+                .wait_timeout(free, left)
+                .unwrap_or_else(PoisonError::into_inner)
+                .0;
+        }
+        *free -= 1;
+        Some(Slot(self.clone()))
     }
 }
 
@@ -234,7 +448,7 @@ enum Body {
     Bytes(Vec<u8>),
     Stream {
         reader: Box<dyn Read + Send>,
-        len: usize,
+        len: u64,
     },
 }
 
@@ -252,6 +466,13 @@ struct Reply {
     file_name: Option<String>,
 }
 
+fn error_body(message: &str) -> Vec<u8> {
+    serde_json::to_vec(&ErrorReply {
+        error: message.into(),
+    })
+    .unwrap_or_default()
+}
+
 impl Reply {
     fn json(status: u16, value: &impl Serialize) -> Self {
         match serde_json::to_vec(value) {
@@ -266,14 +487,10 @@ impl Reply {
     }
 
     fn error(status: u16, message: impl Into<String>) -> Self {
-        let body = serde_json::to_vec(&ErrorReply {
-            error: message.into(),
-        })
-        .unwrap_or_default();
         Self {
             status,
             content_type: "application/json",
-            body: body.into(),
+            body: error_body(&message.into()).into(),
             file_name: None,
         }
     }
@@ -286,6 +503,10 @@ impl Reply {
             file_name: Some(file_name),
         }
     }
+
+    fn busy(what: &str) -> Self {
+        Self::error(503, format!("the server is busy: {what}; try again"))
+    }
 }
 
 struct Handler {
@@ -295,89 +516,60 @@ struct Handler {
     /// One snapshot at a time: choosing a free file name and writing it is one step, and two
     /// encodings of a large map at once would double the memory a snapshot takes.
     snapshot_lock: Mutex<()>,
-}
-
-/// The value of the first header named `name`.
-fn header<'a>(request: &'a Request, name: &'static str) -> Option<&'a str> {
-    request
-        .headers()
-        .iter()
-        .find(|h| h.field.equiv(name))
-        .map(|h| h.value.as_str())
+    /// Queries, heatmaps and snapshots running.
+    work: Arc<Slots>,
+    /// Map downloads being sent.
+    downloads: Arc<Slots>,
 }
 
 impl Handler {
     /// The access checks of [`crate::guard`], before the body is read.
-    fn admit(&self, request: &Request) -> Result<(), Reply> {
-        let head = RequestHead {
-            post: *request.method() == Method::Post,
-            host: header(request, "Host"),
-            origin: header(request, "Origin"),
-            content_type: header(request, "Content-Type"),
-            authorization: header(request, "Authorization"),
+    fn admit(&self, head: &Head) -> Result<(), Reply> {
+        let request = RequestHead {
+            post: head.method == "POST",
+            host: head.header("Host"),
+            origin: head.header("Origin"),
+            content_type: head.header("Content-Type"),
+            authorization: head.header("Authorization"),
         };
         self.access
-            .check(&head)
+            .check(&request)
             .map_err(|refusal| Reply::error(refusal.status, refusal.message))
     }
 
-    fn respond(&self, mut request: Request) {
-        let reply = match self.admit(&request).and_then(|()| read_body(&mut request)) {
-            Ok(body) => {
-                let (method, url) = (request.method().clone(), request.url().to_owned());
-                catch_unwind(AssertUnwindSafe(|| self.route(&method, &url, &body))).unwrap_or_else(
-                    |_| {
-                        Reply::error(
-                            500,
-                            "the server failed on this request (a bug: please report it)",
-                        )
-                    },
-                )
-            }
-            Err(reply) => reply,
-        };
-        let mut headers = Vec::new();
-        headers.extend(Header::from_bytes("Content-Type", reply.content_type).ok());
-        if let Some(name) = &reply.file_name {
-            headers.extend(
-                Header::from_bytes(
-                    "Content-Disposition",
-                    format!("attachment; filename=\"{name}\""),
-                )
-                .ok(),
-            );
+    /// The reply to one request, and whether the connection may stay open after it (not when a
+    /// refused request's body is left unread).
+    fn answer(&self, connection: &mut Connection, head: &Head) -> (Reply, bool) {
+        if let Err(reply) = self.admit(head) {
+            return (reply, head.keep_alive && !head.has_body());
         }
-        // Only a server with a token answers 401, with its scheme (RFC 6750).
-        if reply.status == 401 {
-            headers.extend(Header::from_bytes("WWW-Authenticate", "Bearer realm=\"vlem\"").ok());
-        }
-        let status = StatusCode(reply.status);
-        // The client may have gone; nothing to do about it here.
-        let _ = match reply.body {
-            Body::Bytes(bytes) => {
-                let len = bytes.len();
-                request.respond(Response::new(
-                    status,
-                    headers,
-                    std::io::Cursor::new(bytes),
-                    Some(len),
-                    None,
-                ))
-            }
-            Body::Stream { reader, len } => {
-                request.respond(Response::new(status, headers, reader, Some(len), None))
+        let body = match connection.read_body(head) {
+            Ok(body) => body,
+            Err(ReadError::Closed) => return (Reply::error(400, "the body did not arrive"), false),
+            Err(ReadError::Refuse { status, message }) => {
+                return (Reply::error(status, message), false);
             }
         };
+        let reply = catch_unwind(AssertUnwindSafe(|| {
+            self.route(&head.method, &head.target, &body)
+        }))
+        .unwrap_or_else(|_| {
+            Reply::error(
+                500,
+                "the server failed on this request (a bug: please report it)",
+            )
+        });
+        (reply, head.keep_alive)
     }
 
-    fn route(&self, method: &Method, url: &str, body: &[u8]) -> Reply {
+    fn route(&self, method: &str, url: &str, body: &[u8]) -> Reply {
         let (path, query) = url.split_once('?').unwrap_or((url, ""));
         match (method, path) {
-            (Method::Get, "/status") => self.status(),
-            (Method::Post, "/query") => self.query(body),
-            (Method::Get, "/heatmap.ply") => self.heatmap(query),
-            (Method::Post, "/snapshot") => self.snapshot(body),
-            (Method::Get, "/map.vlem") => self.map_file(),
+            ("GET", "/status") => self.status(),
+            ("POST", "/query") => self.with_work_slot(|| self.query(body)),
+            ("GET", "/heatmap.ply") => self.with_work_slot(|| self.heatmap(query)),
+            ("POST", "/snapshot") => self.with_work_slot(|| self.snapshot(body)),
+            ("GET", "/map.vlem") => self.map_file(),
             (_, "/status" | "/query" | "/heatmap.ply" | "/snapshot" | "/map.vlem") => {
                 Reply::error(405, format!("{method} is not allowed on {path}"))
             }
@@ -391,18 +583,30 @@ impl Handler {
         }
     }
 
+    /// Runs `work` (a pass over the map) in one of the [`WORK_SLOTS`], or answers 503 when none
+    /// frees up within [`WORK_WAIT`].
+    fn with_work_slot(&self, work: impl FnOnce() -> Reply) -> Reply {
+        match self.work.take(WORK_WAIT) {
+            Some(_slot) => work(),
+            None => Reply::busy(&format!(
+                "{WORK_SLOTS} queries, heatmaps or snapshots are running and none finished \
+                 within {} s",
+                WORK_WAIT.as_secs()
+            )),
+        }
+    }
+
+    /// `GET /status`: copies of the counters and the map's size, never the map's lock, so it
+    /// answers at once whatever queries are running.
     fn status(&self) -> Reply {
-        let map = self
-            .live
-            .read(|view| MapStatus {
-                kind: view.map.name().into(),
-                points: view.map.len(),
-                dim: view.map.dim(),
-                bytes: view.map.memory_bytes(),
-                device_bytes: view.map.device_memory_bytes(),
-                frames_integrated: view.frames_integrated,
-            })
-            .ok();
+        let map = self.live.summary().map(|summary| MapStatus {
+            kind: summary.kind,
+            points: summary.points,
+            dim: summary.dim,
+            bytes: summary.host_bytes,
+            device_bytes: summary.device_bytes,
+            frames_integrated: summary.frames_integrated,
+        });
         Reply::json(
             200,
             &Status {
@@ -581,7 +785,12 @@ impl Handler {
         }
     }
 
+    /// `GET /map.vlem`: one of the [`DOWNLOADS`] slots (503 at once when all are taken, since
+    /// a download lasts as long as its client reads), held until the file is sent.
     fn map_file(&self) -> Reply {
+        let Some(slot) = self.downloads.take(Duration::ZERO) else {
+            return Reply::busy(&format!("{DOWNLOADS} map downloads are being sent"));
+        };
         let snapshot = match self.live.snapshot() {
             Ok(s) => s,
             Err(vlem_core::CoreError::MissingStage { message }) => {
@@ -589,7 +798,7 @@ impl Handler {
             }
             Err(e) => return Reply::error(500, e.to_string()),
         };
-        match stream_map_file(snapshot) {
+        match stream_map_file(snapshot, slot) {
             Ok(body) => Reply::binary(body, "map.vlem".into()),
             Err(e) => Reply::error(500, e.to_string()),
         }
@@ -600,22 +809,22 @@ impl Handler {
 /// reads the other end, so a download holds the snapshot (one copy of the map, taken under the
 /// read lock) and a pipe's buffer, never the encoded file. A client that goes away closes the
 /// pipe, which ends the encoding thread.
-fn stream_map_file(snapshot: vlem_core::MapSnapshot) -> vlem_core::Result<Body> {
+fn stream_map_file(snapshot: vlem_core::MapSnapshot, slot: Slot) -> vlem_core::Result<Body> {
     let len = vlem_core::mapfile::map_file_len(&snapshot)?;
-    let len = usize::try_from(len).map_err(|_| vlem_core::CoreError::MapFile {
-        path: "map.vlem".into(),
-        reason: "larger than this platform can address".into(),
-    })?;
     let (reader, writer) =
         std::io::pipe().map_err(|e| vlem_core::CoreError::io("(map download pipe)", e))?;
     std::thread::Builder::new()
         .name("vlem-map-download".into())
         .spawn(move || {
             let writer = std::io::BufWriter::with_capacity(1 << 16, writer);
-            // A failed write is the client leaving; the response side reports nothing more.
+            // A failed write is the client leaving (or stalling past the write timeout); the
+            // answer side reports nothing more.
             if let Ok(mut writer) = vlem_core::mapfile::write_map_to(writer, &snapshot) {
                 let _ = writer.flush();
             }
+            // The slot frees only once the snapshot's memory is.
+            drop(snapshot);
+            drop(slot);
         })
         .map_err(|e| vlem_core::CoreError::io("(map download thread)", e))?;
     Ok(Body::Stream {
@@ -648,28 +857,6 @@ fn query_error(e: &QueryError) -> Reply {
         _ => 500,
     };
     Reply::error(status, e.to_string())
-}
-
-fn read_body(request: &mut Request) -> Result<Vec<u8>, Reply> {
-    if request.body_length().is_some_and(|n| n > MAX_BODY_BYTES) {
-        return Err(Reply::error(
-            413,
-            format!("request bodies are limited to {MAX_BODY_BYTES} bytes"),
-        ));
-    }
-    let mut body = Vec::new();
-    request
-        .as_reader()
-        .take(MAX_BODY_BYTES as u64 + 1)
-        .read_to_end(&mut body)
-        .map_err(|e| Reply::error(400, format!("cannot read the request body: {e}")))?;
-    if body.len() > MAX_BODY_BYTES {
-        return Err(Reply::error(
-            413,
-            format!("request bodies are limited to {MAX_BODY_BYTES} bytes"),
-        ));
-    }
-    Ok(body)
 }
 
 /// `a=1&b=two+words` → pairs, percent-decoded.

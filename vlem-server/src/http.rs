@@ -1,0 +1,589 @@
+//! HTTP/1.1 on one connection, with every read and write bounded in size and time.
+//!
+//! Why this file exists: the server runs next to a mapping run for hours, on a port any local
+//! program (or a web page, through the browser) can reach, so each connection must cost bounded
+//! memory and end in bounded time whatever the peer sends or withholds. The HTTP library used
+//! before had no timeouts and held any header line in memory; the maintained async stacks answer
+//! some of these cases with empty bodies (a request line of `HTTP/2.0` gets 400, not 505) and
+//! would bring an async runtime to a server whose handlers are blocking passes over the map. So
+//! the grammar is `httparse`'s (the parser under hyper), and this file adds only the limits:
+//! - the request head (request line and headers) must fit in [`Limits::head_bytes`] and arrive
+//!   within [`Limits::head_time`] of its first byte: otherwise 414 (the request line alone is too
+//!   long), 431 (headers), 408 (too slow);
+//! - a keep-alive connection may wait [`Limits::idle`] for its next request, then it is closed;
+//! - a body needs a `Content-Length` within [`Limits::body_bytes`] (413; 411 for chunked bodies)
+//!   and must arrive within [`Limits::body_time`] (408); `Expect: 100-continue` is honoured once
+//!   the request has been admitted, so a refused client never sends its body;
+//! - a version other than HTTP/1.0 or 1.1 is answered 505;
+//! - a write that makes no progress for [`Limits::write_stall`] ends the connection (a client
+//!   that stops reading a download).
+
+use std::io::{self, Read, Write};
+use std::net::TcpStream;
+use std::time::{Duration, Instant};
+
+/// Bounds on one connection's requests.
+#[derive(Clone, Copy, Debug)]
+pub(crate) struct Limits {
+    /// Bytes of a request head (request line and headers).
+    pub head_bytes: usize,
+    /// Bytes of a request target (path and query).
+    pub url_bytes: usize,
+    /// Headers in one request.
+    pub headers: usize,
+    /// Bytes of a request body.
+    pub body_bytes: usize,
+    /// How long a connection may wait for the first byte of its next request.
+    pub idle: Duration,
+    /// How long a request head may take from its first byte.
+    pub head_time: Duration,
+    /// How long a request body may take from the end of its head.
+    pub body_time: Duration,
+    /// How long one write may make no progress.
+    pub write_stall: Duration,
+}
+
+impl Limits {
+    /// The server's bounds: generous for every client this server has (curl, a browser, ureq,
+    /// Python's requests), small enough that 64 connections at their limits hold a few MiB.
+    pub(crate) const SERVER: Self = Self {
+        head_bytes: 16 * 1024,
+        url_bytes: 8 * 1024,
+        headers: 64,
+        body_bytes: 1 << 20,
+        idle: Duration::from_secs(30),
+        head_time: Duration::from_secs(10),
+        body_time: Duration::from_secs(10),
+        write_stall: Duration::from_secs(30),
+    };
+}
+
+/// A request's line and headers, read and checked, its body not yet read.
+#[derive(Debug)]
+pub(crate) struct Head {
+    /// The method as sent (`GET`, `POST`, …).
+    pub method: String,
+    /// The request target (path and query).
+    pub target: String,
+    /// Headers in the order sent; values that are not UTF-8 are read lossily.
+    pub headers: Vec<(String, String)>,
+    /// Whether the connection stays open after the answer (HTTP/1.1 without `Connection: close`).
+    pub keep_alive: bool,
+}
+
+impl Head {
+    /// The value of the first header named `name` (case-insensitively).
+    pub(crate) fn header(&self, name: &str) -> Option<&str> {
+        self.headers
+            .iter()
+            .find(|(n, _)| n.eq_ignore_ascii_case(name))
+            .map(|(_, v)| v.as_str())
+    }
+
+    /// Whether the request announces a body (one that must be read or the connection closed).
+    pub(crate) fn has_body(&self) -> bool {
+        self.header("Transfer-Encoding").is_some()
+            || self
+                .header("Content-Length")
+                .is_some_and(|n| n.trim() != "0")
+    }
+}
+
+/// Why no request was read.
+#[derive(Debug, PartialEq, Eq)]
+pub(crate) enum ReadError {
+    /// The peer closed, went quiet between requests, or the socket failed: close without an answer.
+    Closed,
+    /// Answer `status` with `message`, then close.
+    Refuse {
+        /// HTTP status.
+        status: u16,
+        /// The JSON error's message.
+        message: String,
+    },
+}
+
+fn refuse(status: u16, message: impl Into<String>) -> ReadError {
+    ReadError::Refuse {
+        status,
+        message: message.into(),
+    }
+}
+
+/// One accepted connection: its socket and the bytes read past the current request (a pipelined
+/// next request).
+pub(crate) struct Connection {
+    stream: TcpStream,
+    limits: Limits,
+    buffer: Vec<u8>,
+}
+
+impl Connection {
+    pub(crate) fn new(stream: TcpStream, limits: Limits) -> Self {
+        Self {
+            stream,
+            limits,
+            buffer: Vec::new(),
+        }
+    }
+
+    /// Reads the next request's head; its body, if any, is left for [`Connection::read_body`].
+    pub(crate) fn read_head(&mut self) -> Result<Head, ReadError> {
+        let waiting_since = Instant::now();
+        let mut first_byte = (!self.buffer.is_empty()).then_some(waiting_since);
+        loop {
+            if let Some(head) = self.parse_head()? {
+                return Ok(head);
+            }
+            let deadline = match first_byte {
+                None => waiting_since + self.limits.idle,
+                Some(at) => at + self.limits.head_time,
+            };
+            match self.fill(deadline)? {
+                Filled::Bytes => {
+                    first_byte.get_or_insert_with(Instant::now);
+                }
+                Filled::TimedOut if first_byte.is_none() => return Err(ReadError::Closed),
+                Filled::TimedOut => {
+                    return Err(refuse(
+                        408,
+                        format!(
+                            "the request head did not arrive within {} s of its first byte",
+                            self.limits.head_time.as_secs()
+                        ),
+                    ));
+                }
+            }
+        }
+    }
+
+    /// The head at the start of the buffer, if it is complete.
+    fn parse_head(&mut self) -> Result<Option<Head>, ReadError> {
+        if self.buffer.is_empty() {
+            return Ok(None);
+        }
+        let mut headers = vec![httparse::EMPTY_HEADER; self.limits.headers];
+        let mut request = httparse::Request::new(&mut headers);
+        let length = match request.parse(&self.buffer) {
+            Ok(httparse::Status::Complete(length)) => length,
+            Ok(httparse::Status::Partial) => {
+                return if self.buffer.len() < self.limits.head_bytes {
+                    Ok(None)
+                } else if !self.buffer[..self.limits.head_bytes].contains(&b'\n') {
+                    Err(self.target_too_long(format!("over {}", self.limits.head_bytes)))
+                } else {
+                    Err(self.head_too_large())
+                };
+            }
+            Err(httparse::Error::Version) => {
+                return Err(refuse(
+                    505,
+                    "this server speaks HTTP/1.1 (and 1.0) only; send the request as HTTP/1.1",
+                ));
+            }
+            Err(httparse::Error::TooManyHeaders) => return Err(self.head_too_large()),
+            Err(e) => return Err(refuse(400, format!("malformed HTTP request: {e}"))),
+        };
+        if length > self.limits.head_bytes {
+            return Err(self.head_too_large());
+        }
+        let target = request.path.unwrap_or("/");
+        if target.len() > self.limits.url_bytes {
+            return Err(self.target_too_long(target.len().to_string()));
+        }
+        let http_1_1 = request.version == Some(1);
+        let headers: Vec<(String, String)> = request
+            .headers
+            .iter()
+            .map(|h| {
+                (
+                    h.name.to_owned(),
+                    String::from_utf8_lossy(h.value).into_owned(),
+                )
+            })
+            .collect();
+        let close = headers
+            .iter()
+            .filter(|(n, _)| n.eq_ignore_ascii_case("Connection"))
+            .any(|(_, v)| v.split(',').any(|t| t.trim().eq_ignore_ascii_case("close")));
+        let head = Head {
+            method: request.method.unwrap_or("").to_owned(),
+            target: target.to_owned(),
+            headers,
+            keep_alive: http_1_1 && !close,
+        };
+        self.buffer.drain(..length);
+        Ok(Some(head))
+    }
+
+    /// 414 for a target of `bytes` (a count, or "over N" when the line did not end).
+    fn target_too_long(&self, bytes: String) -> ReadError {
+        refuse(
+            414,
+            format!(
+                "a request target of {bytes} bytes; the limit is {} bytes (send long texts in a \
+                 POST /query body)",
+                self.limits.url_bytes
+            ),
+        )
+    }
+
+    fn head_too_large(&self) -> ReadError {
+        refuse(
+            431,
+            format!(
+                "the request's headers exceed the limit of {} bytes or {} headers",
+                self.limits.head_bytes, self.limits.headers
+            ),
+        )
+    }
+
+    /// Reads the body `head` announces (empty when it announces none). Call it only for an
+    /// admitted request: it answers `Expect: 100-continue`.
+    pub(crate) fn read_body(&mut self, head: &Head) -> Result<Vec<u8>, ReadError> {
+        if head.header("Transfer-Encoding").is_some() {
+            return Err(refuse(
+                411,
+                "send the request body with a Content-Length (chunked bodies are not accepted)",
+            ));
+        }
+        let mut lengths = head
+            .headers
+            .iter()
+            .filter(|(n, _)| n.eq_ignore_ascii_case("Content-Length"))
+            .map(|(_, v)| v.trim().parse::<u64>());
+        let length = match (lengths.next(), lengths.next()) {
+            (None, _) => 0,
+            (Some(Ok(n)), None) => n,
+            _ => {
+                return Err(refuse(
+                    400,
+                    "the Content-Length header must be one whole number",
+                ));
+            }
+        };
+        let limit = self.limits.body_bytes;
+        let length = match usize::try_from(length) {
+            Ok(n) if n <= limit => n,
+            _ => {
+                return Err(refuse(
+                    413,
+                    format!(
+                        "a request body of {length} bytes; request bodies are limited to {limit} \
+                         bytes"
+                    ),
+                ));
+            }
+        };
+        if length == 0 {
+            return Ok(Vec::new());
+        }
+        if self.buffer.is_empty()
+            && head
+                .header("Expect")
+                .is_some_and(|e| e.trim().eq_ignore_ascii_case("100-continue"))
+        {
+            self.write_all(b"HTTP/1.1 100 Continue\r\n\r\n")
+                .map_err(|_| ReadError::Closed)?;
+        }
+        let deadline = Instant::now() + self.limits.body_time;
+        while self.buffer.len() < length {
+            if let Filled::TimedOut = self.fill(deadline)? {
+                return Err(refuse(
+                    408,
+                    format!(
+                        "the request body ({length} bytes) did not arrive within {} s",
+                        self.limits.body_time.as_secs()
+                    ),
+                ));
+            }
+        }
+        Ok(self.buffer.drain(..length).collect())
+    }
+
+    /// Reads what the peer has sent by `deadline` onto the buffer.
+    fn fill(&mut self, deadline: Instant) -> Result<Filled, ReadError> {
+        let mut chunk = [0u8; 8192];
+        loop {
+            let Some(left) = deadline
+                .checked_duration_since(Instant::now())
+                .filter(|d| !d.is_zero())
+            else {
+                return Ok(Filled::TimedOut);
+            };
+            self.stream
+                .set_read_timeout(Some(left))
+                .map_err(|_| ReadError::Closed)?;
+            match self.stream.read(&mut chunk) {
+                Ok(0) => return Err(ReadError::Closed),
+                Ok(n) => {
+                    self.buffer.extend_from_slice(&chunk[..n]);
+                    return Ok(Filled::Bytes);
+                }
+                Err(e) if matches!(e.kind(), io::ErrorKind::Interrupted) => {}
+                Err(e)
+                    if matches!(
+                        e.kind(),
+                        io::ErrorKind::WouldBlock | io::ErrorKind::TimedOut
+                    ) => {}
+                Err(_) => return Err(ReadError::Closed),
+            }
+        }
+    }
+
+    /// Writes an answer: the status line, `headers`, `Content-Length` and `Connection`, then the
+    /// body (`body_len` bytes read from `body`). A body that ends early is an error (the peer
+    /// then sees a short answer and a closed connection, never a wrong one).
+    pub(crate) fn write_answer(
+        &mut self,
+        status: u16,
+        headers: &[(&str, String)],
+        body: &mut dyn Read,
+        body_len: u64,
+        close: bool,
+    ) -> io::Result<()> {
+        let mut head = format!("HTTP/1.1 {status} {}\r\n", reason(status));
+        for (name, value) in headers {
+            head.push_str(&format!("{name}: {value}\r\n"));
+        }
+        head.push_str(&format!(
+            "Content-Length: {body_len}\r\nConnection: {}\r\n\r\n",
+            if close { "close" } else { "keep-alive" }
+        ));
+        self.write_all(head.as_bytes())?;
+        self.stream
+            .set_write_timeout(Some(self.limits.write_stall))?;
+        let copied = io::copy(&mut body.take(body_len), &mut self.stream)?;
+        if copied < body_len {
+            return Err(io::Error::new(
+                io::ErrorKind::UnexpectedEof,
+                "the answer's body ended early",
+            ));
+        }
+        self.stream.flush()
+    }
+
+    fn write_all(&mut self, bytes: &[u8]) -> io::Result<()> {
+        self.stream
+            .set_write_timeout(Some(self.limits.write_stall))?;
+        self.stream.write_all(bytes)
+    }
+}
+
+enum Filled {
+    Bytes,
+    TimedOut,
+}
+
+/// The reason phrase of the statuses this server sends.
+pub(crate) fn reason(status: u16) -> &'static str {
+    match status {
+        100 => "Continue",
+        200 => "OK",
+        400 => "Bad Request",
+        401 => "Unauthorized",
+        403 => "Forbidden",
+        404 => "Not Found",
+        405 => "Method Not Allowed",
+        408 => "Request Timeout",
+        409 => "Conflict",
+        411 => "Length Required",
+        413 => "Content Too Large",
+        414 => "URI Too Long",
+        415 => "Unsupported Media Type",
+        422 => "Unprocessable Content",
+        431 => "Request Header Fields Too Large",
+        500 => "Internal Server Error",
+        503 => "Service Unavailable",
+        505 => "HTTP Version Not Supported",
+        507 => "Insufficient Storage",
+        _ => "",
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use std::net::TcpListener;
+
+    use super::*;
+
+    const QUICK: Limits = Limits {
+        head_bytes: 1024,
+        url_bytes: 256,
+        headers: 8,
+        body_bytes: 64,
+        idle: Duration::from_millis(300),
+        head_time: Duration::from_millis(300),
+        body_time: Duration::from_millis(300),
+        write_stall: Duration::from_millis(300),
+    };
+
+    /// A server-side connection and the client socket that talks to it.
+    fn pair() -> (Connection, TcpStream) {
+        let listener = TcpListener::bind("127.0.0.1:0").unwrap();
+        let client = TcpStream::connect(listener.local_addr().unwrap()).unwrap();
+        let (server, _) = listener.accept().unwrap();
+        (Connection::new(server, QUICK), client)
+    }
+
+    fn status_of(result: Result<Head, ReadError>) -> u16 {
+        match result {
+            Ok(_) => 200,
+            Err(ReadError::Closed) => 0,
+            Err(ReadError::Refuse { status, .. }) => status,
+        }
+    }
+
+    #[test]
+    fn pipelined_requests_and_their_bodies_are_read_in_turn() {
+        let (mut connection, mut client) = pair();
+        client
+            .write_all(
+                b"POST /query HTTP/1.1\r\nHost: h\r\nContent-Length: 5\r\n\r\nhello\
+                  GET /status HTTP/1.1\r\nHost: h\r\nConnection: close\r\n\r\n",
+            )
+            .unwrap();
+        let head = connection.read_head().unwrap();
+        assert_eq!(
+            (head.method.as_str(), head.target.as_str()),
+            ("POST", "/query")
+        );
+        assert!(head.keep_alive && head.has_body());
+        assert_eq!(head.header("content-length"), Some("5"));
+        assert_eq!(connection.read_body(&head).unwrap(), b"hello");
+        let head = connection.read_head().unwrap();
+        assert_eq!(head.target, "/status");
+        assert!(!head.keep_alive && !head.has_body());
+        assert!(connection.read_body(&head).unwrap().is_empty());
+    }
+
+    #[test]
+    fn oversized_heads_targets_and_bodies_get_their_statuses() {
+        let cases: [(Vec<u8>, u16); 6] = [
+            (
+                format!("GET /{} HTTP/1.1\r\n\r\n", "a".repeat(300)).into_bytes(),
+                414,
+            ),
+            // No line end within the head limit: a request line that never ends.
+            (format!("GET /{}", "a".repeat(2000)).into_bytes(), 414),
+            (
+                format!("GET / HTTP/1.1\r\nX: {}\r\n\r\n", "a".repeat(2000)).into_bytes(),
+                431,
+            ),
+            (
+                (0..20)
+                    .map(|i| format!("X-{i}: 1\r\n"))
+                    .fold("GET / HTTP/1.1\r\n".to_owned(), |s, h| s + &h)
+                    .into_bytes(),
+                431,
+            ),
+            (b"GET / HTTP/2.0\r\n\r\n".to_vec(), 505),
+            (b"GET\x01 / HTTP/1.1\r\n\r\n".to_vec(), 400),
+        ];
+        for (request, expected) in cases {
+            let (mut connection, mut client) = pair();
+            client.write_all(&request).unwrap();
+            assert_eq!(
+                status_of(connection.read_head()),
+                expected,
+                "{}",
+                String::from_utf8_lossy(&request[..request.len().min(40)])
+            );
+        }
+        let (mut connection, mut client) = pair();
+        client
+            .write_all(b"POST / HTTP/1.1\r\nContent-Length: 100\r\n\r\n")
+            .unwrap();
+        let head = connection.read_head().unwrap();
+        let Err(ReadError::Refuse { status, message }) = connection.read_body(&head) else {
+            panic!("a body over the limit is refused");
+        };
+        assert_eq!(status, 413);
+        assert!(message.contains("limited to 64 bytes"), "{message}");
+        for (headers, expected) in [
+            ("Transfer-Encoding: chunked", 411),
+            ("Content-Length: 1\r\nContent-Length: 2", 400),
+            ("Content-Length: -1", 400),
+        ] {
+            let (mut connection, mut client) = pair();
+            client
+                .write_all(format!("POST / HTTP/1.1\r\n{headers}\r\n\r\n").as_bytes())
+                .unwrap();
+            let head = connection.read_head().unwrap();
+            assert!(
+                matches!(connection.read_body(&head), Err(ReadError::Refuse { status, .. }) if status == expected),
+                "{headers}"
+            );
+        }
+    }
+
+    #[test]
+    fn slow_and_silent_peers_are_timed_out() {
+        // Silent before a request: closed without an answer.
+        let (mut connection, _client) = pair();
+        assert_eq!(connection.read_head().unwrap_err(), ReadError::Closed);
+        // A head that starts and stalls: 408.
+        let (mut connection, mut client) = pair();
+        client.write_all(b"GET / HTTP/1.1\r\nHo").unwrap();
+        assert_eq!(status_of(connection.read_head()), 408);
+        // A body that stalls after its head: 408.
+        let (mut connection, mut client) = pair();
+        client
+            .write_all(b"POST / HTTP/1.1\r\nContent-Length: 10\r\n\r\nabc")
+            .unwrap();
+        let head = connection.read_head().unwrap();
+        assert!(matches!(
+            connection.read_body(&head),
+            Err(ReadError::Refuse { status: 408, .. })
+        ));
+        // A peer that closes mid-head: closed.
+        let (mut connection, mut client) = pair();
+        client.write_all(b"GET / HT").unwrap();
+        drop(client);
+        assert_eq!(connection.read_head().unwrap_err(), ReadError::Closed);
+    }
+
+    #[test]
+    fn expect_continue_is_answered_before_the_body_and_answers_carry_their_length() {
+        let (mut connection, mut client) = pair();
+        client
+            .write_all(b"POST / HTTP/1.1\r\nContent-Length: 2\r\nExpect: 100-continue\r\n\r\n")
+            .unwrap();
+        let head = connection.read_head().unwrap();
+        let reader = std::thread::spawn(move || {
+            let mut seen = [0u8; 25];
+            client.read_exact(&mut seen).unwrap();
+            assert_eq!(&seen, b"HTTP/1.1 100 Continue\r\n\r\n");
+            client.write_all(b"{}").unwrap();
+            let mut answer = String::new();
+            client.read_to_string(&mut answer).unwrap();
+            answer
+        });
+        assert_eq!(connection.read_body(&head).unwrap(), b"{}");
+        connection
+            .write_answer(
+                200,
+                &[("Content-Type", "text/plain".into())],
+                &mut &b"ok"[..],
+                2,
+                true,
+            )
+            .unwrap();
+        drop(connection);
+        let answer = reader.join().unwrap();
+        assert_eq!(
+            answer,
+            "HTTP/1.1 200 OK\r\nContent-Type: text/plain\r\nContent-Length: 2\r\n\
+             Connection: close\r\n\r\nok"
+        );
+    }
+
+    #[test]
+    fn a_body_that_ends_early_is_an_error_not_a_short_answer() {
+        let (mut connection, _client) = pair();
+        let err = connection
+            .write_answer(200, &[], &mut &b"short"[..], 10, true)
+            .unwrap_err();
+        assert_eq!(err.kind(), io::ErrorKind::UnexpectedEof);
+    }
+}
