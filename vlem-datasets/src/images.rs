@@ -37,12 +37,41 @@ fn decode(bytes: &[u8], origin: &Path) -> Result<DynamicImage> {
         .with_guessed_format()
         .map_err(|e| DatasetError::io(origin, e))?;
     reader.limits(limits);
+    if reader.format() == Some(image::ImageFormat::Jpeg) && !jpeg_is_complete(bytes) {
+        return Err(DatasetError::UnsupportedImage {
+            path: origin.to_path_buf(),
+            reason: format!(
+                "cannot decode image: the JPEG data ({} bytes) ends inside its last scan, before \
+                 the end-of-image marker: the file is truncated (an interrupted copy or \
+                 recording?); the decoder would fill the missing rows with grey",
+                bytes.len()
+            ),
+        });
+    }
     reader
         .decode()
         .map_err(|source| DatasetError::UnreadableImage {
             path: origin.to_path_buf(),
             source,
         })
+}
+
+/// Whether a JPEG stream has an end-of-image marker (`FF D9`) after its last start-of-scan
+/// (`FF DA`). The decoder accepts a file cut inside its entropy-coded data and fills the missing
+/// rows with grey, which would put a grey band into the map's colours and embeddings without a
+/// word. Inside entropy-coded data `FF` is always followed by `00` or a restart marker, so these
+/// two byte pairs there are real markers; an EXIF thumbnail's own markers come before the main
+/// image's scans, and bytes after the end marker (padding some cameras add) are allowed.
+fn jpeg_is_complete(bytes: &[u8]) -> bool {
+    const START_OF_SCAN: [u8; 2] = [0xFF, 0xDA];
+    const END_OF_IMAGE: [u8; 2] = [0xFF, 0xD9];
+    let Some(last_scan) = bytes.windows(2).rposition(|pair| pair == START_OF_SCAN) else {
+        // No scan at all: the decoder's own error says what is wrong.
+        return true;
+    };
+    bytes[last_scan..]
+        .windows(2)
+        .any(|pair| pair == END_OF_IMAGE)
 }
 
 /// Reads a colour image as 8-bit RGB; grayscale, alpha and 16-bit inputs are converted.

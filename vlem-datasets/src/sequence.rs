@@ -268,7 +268,8 @@ pub(crate) fn attach_poses(
 /// The files of `dir` with one of `extensions` (lower case, no dot), in natural order
 /// (`9.png` before `10.png`, as numbered frames are meant).
 ///
-/// `hint` says what the layout needs `dir` for, in the error when it is missing.
+/// `hint` says what the layout needs `dir` for, in the error when it is missing. An entry with
+/// such a name that is not a regular file (or a link to one) is an error naming it.
 pub(crate) fn list_files(dir: &Path, extensions: &[&str], hint: &str) -> Result<Vec<PathBuf>> {
     if !dir.is_dir() {
         return Err(DatasetError::MissingFile {
@@ -284,9 +285,15 @@ pub(crate) fn list_files(dir: &Path, extensions: &[&str], hint: &str) -> Result<
             .extension()
             .and_then(|e| e.to_str())
             .is_some_and(|e| extensions.contains(&e.to_ascii_lowercase().as_str()));
-        if matches && path.is_file() {
-            files.push(path);
+        if !matches {
+            continue;
         }
+        // An image name on something that is not a file (a FIFO would block the reader forever,
+        // a looping link fails later as a count mismatch) is named now, not skipped.
+        if let Some(what) = not_a_regular_file(&path) {
+            return Err(not_a_file_error(&path, &what));
+        }
+        files.push(path);
     }
     files.sort_by_cached_key(|p| natural_key(p));
     Ok(files)
@@ -316,14 +323,63 @@ fn natural_key(path: &Path) -> (String, Option<u64>, String) {
 }
 
 /// Fails with [`DatasetError::MissingFile`] unless `path` is a file; `hint` says who expects it.
+/// Something else under that name (a FIFO, a folder, a looping link) is named for what it is.
 pub(crate) fn require_file(path: &Path, hint: impl FnOnce() -> String) -> Result<()> {
-    if path.is_file() {
-        Ok(())
-    } else {
-        Err(DatasetError::MissingFile {
+    if std::fs::symlink_metadata(path).is_err() {
+        return Err(DatasetError::MissingFile {
             path: path.to_path_buf(),
             hint: hint(),
-        })
+        });
+    }
+    match not_a_regular_file(path) {
+        None => Ok(()),
+        Some(what) => Err(not_a_file_error(path, &what)),
+    }
+}
+
+/// What `path` is when it is not a regular file (or a link to one), in words; `None` for a file.
+fn not_a_regular_file(path: &Path) -> Option<String> {
+    let error = match std::fs::metadata(path) {
+        Ok(metadata) if metadata.is_file() => return None,
+        Ok(metadata) => return Some(file_kind(&metadata.file_type()).to_owned()),
+        Err(error) => error,
+    };
+    let link = std::fs::symlink_metadata(path).is_ok_and(|m| m.file_type().is_symlink());
+    Some(match (link, error.kind()) {
+        (true, std::io::ErrorKind::NotFound) => "a symbolic link to nothing".to_owned(),
+        (true, _) => format!("a symbolic link that cannot be followed ({error})"),
+        (false, _) => format!("a file that cannot be inspected ({error})"),
+    })
+}
+
+fn file_kind(kind: &std::fs::FileType) -> &'static str {
+    #[cfg(unix)]
+    {
+        use std::os::unix::fs::FileTypeExt;
+        if kind.is_fifo() {
+            return "a FIFO (named pipe)";
+        }
+        if kind.is_socket() {
+            return "a socket";
+        }
+        if kind.is_block_device() || kind.is_char_device() {
+            return "a device";
+        }
+    }
+    if kind.is_dir() {
+        "a folder"
+    } else {
+        "a special file"
+    }
+}
+
+fn not_a_file_error(path: &Path, what: &str) -> DatasetError {
+    DatasetError::UnsupportedImage {
+        path: path.to_path_buf(),
+        reason: format!(
+            "{what}, not a regular file: dataset files are read from regular files (or links to \
+             them) only; replace it with the file or remove it"
+        ),
     }
 }
 

@@ -438,3 +438,85 @@ fn images_declaring_more_pixels_than_the_limit_are_refused_before_decoding() {
         assert!(error.to_lowercase().contains("limit"), "{w}x{h}: {error}");
     }
 }
+
+/// A 64 x 48 colour gradient encoded as JPEG.
+fn jpeg_bytes() -> Vec<u8> {
+    let image = image::RgbImage::from_fn(64, 48, |x, y| image::Rgb([x as u8 * 4, y as u8 * 5, 90]));
+    let mut bytes = Vec::new();
+    image::codecs::jpeg::JpegEncoder::new_with_quality(&mut bytes, 90)
+        .encode_image(&image)
+        .unwrap();
+    bytes
+}
+
+#[test]
+fn a_truncated_jpeg_is_refused_naming_the_file() {
+    let whole = jpeg_bytes();
+    let origin = std::path::Path::new("frame.jpg");
+    let decoded = vlem_datasets::colour_from_bytes(&whole, origin).unwrap();
+    assert_eq!((decoded.width(), decoded.height()), (64, 48));
+    // Padding after the end-of-image marker, as some cameras write, is fine.
+    let mut padded = whole.clone();
+    padded.extend_from_slice(&[0; 64]);
+    assert!(vlem_datasets::colour_from_bytes(&padded, origin).is_ok());
+    // Cut inside the scan (the decoder alone fills the rest with grey and says nothing).
+    let cut = &whole[..whole.len() * 2 / 3];
+    let error = vlem_datasets::colour_from_bytes(cut, origin)
+        .err()
+        .map(|e| e.to_string())
+        .unwrap_or_default();
+    assert!(
+        error.starts_with("frame.jpg: cannot decode image"),
+        "{error}"
+    );
+    assert!(error.contains("truncated"), "{error}");
+
+    // In a dataset folder, the frame's file is named.
+    let tmp = tempfile::tempdir().unwrap();
+    common::write_icl(tmp.path(), 0, 1, false);
+    let colour = tmp.path().join("color/00000.png");
+    std::fs::write(&colour, cut).unwrap();
+    let reader = IclReader::open(tmp.path(), &DatasetConfig::default()).unwrap();
+    let err = reader.load(0).unwrap_err().to_string();
+    assert!(
+        err.starts_with(&format!("{}: cannot decode image", colour.display())),
+        "{err}"
+    );
+}
+
+#[cfg(unix)]
+#[test]
+fn symlink_loops_dangling_links_and_fifos_are_named() {
+    /// Puts something that is not an image file at the path.
+    type Setup = fn(&std::path::Path);
+    let setups: [(&str, Setup); 3] = [
+        ("a symbolic link that cannot be followed", |path| {
+            let other = path.with_file_name("loop.lnk");
+            std::os::unix::fs::symlink(&other, path).unwrap();
+            std::os::unix::fs::symlink(path, &other).unwrap();
+        }),
+        ("a symbolic link to nothing", |path| {
+            std::os::unix::fs::symlink(path.with_file_name("gone.png"), path).unwrap();
+        }),
+        ("a FIFO (named pipe)", |path| {
+            let made = std::process::Command::new("mkfifo")
+                .arg(path)
+                .status()
+                .unwrap();
+            assert!(made.success());
+        }),
+    ];
+    for (what, setup) in setups {
+        let tmp = tempfile::tempdir().unwrap();
+        common::write_icl(tmp.path(), 0, 3, false);
+        let colour = tmp.path().join("color/00001.png");
+        std::fs::remove_file(&colour).unwrap();
+        setup(&colour);
+        let err = icl_error(tmp.path());
+        assert!(
+            err.starts_with(&format!("{}: {what}", colour.display())),
+            "{what}: {err}"
+        );
+        assert!(err.contains("not a regular file"), "{err}");
+    }
+}
