@@ -411,6 +411,22 @@ fn oversized_stalled_and_surplus_connections_are_bounded() {
     );
     assert_eq!(status, 505, "{message}");
 
+    // HEAD gets the headers of its answer and no body: here a 405 naming the method to use.
+    {
+        use std::io::{Read, Write};
+        let mut stream = std::net::TcpStream::connect(&address).unwrap();
+        write!(
+            stream,
+            "HEAD /status HTTP/1.1\r\n{host}\r\nConnection: close\r\n\r\n"
+        )
+        .unwrap();
+        let mut answer = String::new();
+        stream.read_to_string(&mut answer).unwrap();
+        assert!(answer.starts_with("HTTP/1.1 405"), "{answer}");
+        assert!(answer.contains("\r\nAllow: GET\r\n"), "{answer}");
+        assert!(answer.ends_with("\r\n\r\n"), "no body: {answer}");
+    }
+
     // Requests whose bodies never come hold no one up: /status and queries are answered.
     let stalled: Vec<_> = (0..8).map(|_| stalled_post(&address, &host)).collect();
     let (status, _) = get(&address, "/status");

@@ -332,14 +332,16 @@ impl Connection {
     }
 
     /// Writes an answer: the status line, `headers`, `Content-Length` and `Connection`, then the
-    /// body (`body_len` bytes read from `body`). A body that ends early is an error (the peer
-    /// then sees a short answer and a closed connection, never a wrong one).
+    /// body (`body_len` bytes read from `body`; none for the answer to a HEAD request, which
+    /// `send_body` false gives). A body that ends early is an error (the peer then sees a short
+    /// answer and a closed connection, never a wrong one).
     pub(crate) fn write_answer(
         &mut self,
         status: u16,
         headers: &[(&str, String)],
         body: &mut dyn Read,
         body_len: u64,
+        send_body: bool,
         close: bool,
     ) -> io::Result<()> {
         let mut head = format!("HTTP/1.1 {status} {}\r\n", reason(status));
@@ -350,9 +352,11 @@ impl Connection {
             "Content-Length: {body_len}\r\nConnection: {}\r\n\r\n",
             if close { "close" } else { "keep-alive" }
         ));
+        // The write timeout (set by `write_all`) bounds each write of the body too.
         self.write_all(head.as_bytes())?;
-        self.stream
-            .set_write_timeout(Some(self.limits.write_stall))?;
+        if !send_body {
+            return self.stream.flush();
+        }
         let copied = io::copy(&mut body.take(body_len), &mut self.stream)?;
         if copied < body_len {
             return Err(io::Error::new(
@@ -567,6 +571,7 @@ mod tests {
                 &mut &b"ok"[..],
                 2,
                 true,
+                true,
             )
             .unwrap();
         drop(connection);
@@ -582,7 +587,7 @@ mod tests {
     fn a_body_that_ends_early_is_an_error_not_a_short_answer() {
         let (mut connection, _client) = pair();
         let err = connection
-            .write_answer(200, &[], &mut &b"short"[..], 10, true)
+            .write_answer(200, &[], &mut &b"short"[..], 10, true, true)
             .unwrap_err();
         assert_eq!(err.kind(), io::ErrorKind::UnexpectedEof);
     }

@@ -360,20 +360,34 @@ fn refuse_busy(stream: TcpStream, message: &str) {
 fn serve_connection(shared: &Shared, stream: TcpStream) {
     let mut connection = Connection::new(stream, Limits::SERVER);
     while !shared.stop.load(Ordering::SeqCst) {
-        let (reply, keep_alive) = match connection.read_head() {
-            Ok(head) => shared.handler.answer(&mut connection, &head),
+        let (reply, keep_alive, send_body) = match connection.read_head() {
+            Ok(head) => {
+                let (reply, keep_alive) = shared.handler.answer(&mut connection, &head);
+                // The answer to HEAD has the headers of a body it does not carry.
+                (reply, keep_alive, head.method != "HEAD")
+            }
             Err(ReadError::Closed) => return,
-            Err(ReadError::Refuse { status, message }) => (Reply::error(status, message), false),
+            Err(ReadError::Refuse { status, message }) => {
+                (Reply::error(status, message), false, true)
+            }
         };
         let keep_alive = keep_alive && !shared.stop.load(Ordering::SeqCst);
-        if write_reply(&mut connection, reply, !keep_alive).is_err() || !keep_alive {
+        if write_reply(&mut connection, reply, send_body, !keep_alive).is_err() || !keep_alive {
             return;
         }
     }
 }
 
-fn write_reply(connection: &mut Connection, reply: Reply, close: bool) -> std::io::Result<()> {
+fn write_reply(
+    connection: &mut Connection,
+    reply: Reply,
+    send_body: bool,
+    close: bool,
+) -> std::io::Result<()> {
     let mut headers = vec![("Content-Type", reply.content_type.to_owned())];
+    if let Some(allow) = reply.allow {
+        headers.push(("Allow", allow.to_owned()));
+    }
     if let Some(name) = &reply.file_name {
         headers.push((
             "Content-Disposition",
@@ -393,10 +407,11 @@ fn write_reply(connection: &mut Connection, reply: Reply, close: bool) -> std::i
             &headers,
             &mut bytes.as_slice(),
             bytes.len() as u64,
+            send_body,
             close,
         ),
         Body::Stream { mut reader, len } => {
-            connection.write_answer(reply.status, &headers, &mut reader, len, close)
+            connection.write_answer(reply.status, &headers, &mut reader, len, send_body, close)
         }
     }
 }
@@ -464,6 +479,8 @@ struct Reply {
     content_type: &'static str,
     body: Body,
     file_name: Option<String>,
+    /// The methods a 405 names (RFC 9110 asks for them).
+    allow: Option<&'static str>,
 }
 
 fn error_body(message: &str) -> Vec<u8> {
@@ -481,6 +498,7 @@ impl Reply {
                 content_type: "application/json",
                 body: body.into(),
                 file_name: None,
+                allow: None,
             },
             Err(e) => Self::error(500, format!("cannot encode the answer: {e}")),
         }
@@ -492,6 +510,7 @@ impl Reply {
             content_type: "application/json",
             body: error_body(&message.into()).into(),
             file_name: None,
+            allow: None,
         }
     }
 
@@ -501,6 +520,7 @@ impl Reply {
             content_type: "application/octet-stream",
             body: body.into(),
             file_name: Some(file_name),
+            allow: None,
         }
     }
 
@@ -570,9 +590,14 @@ impl Handler {
             ("GET", "/heatmap.ply") => self.with_work_slot(|| self.heatmap(query)),
             ("POST", "/snapshot") => self.with_work_slot(|| self.snapshot(body)),
             ("GET", "/map.vlem") => self.map_file(),
-            (_, "/status" | "/query" | "/heatmap.ply" | "/snapshot" | "/map.vlem") => {
-                Reply::error(405, format!("{method} is not allowed on {path}"))
-            }
+            (_, "/status" | "/heatmap.ply" | "/map.vlem") => Reply {
+                allow: Some("GET"),
+                ..Reply::error(405, format!("{method} is not allowed on {path}; use GET"))
+            },
+            (_, "/query" | "/snapshot") => Reply {
+                allow: Some("POST"),
+                ..Reply::error(405, format!("{method} is not allowed on {path}; use POST"))
+            },
             _ => Reply::error(
                 404,
                 format!(
