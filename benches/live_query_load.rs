@@ -8,8 +8,13 @@
 //! run: frames per second, the mean integration time (which includes waiting for the map's write
 //! lock), and the query latencies.
 //!
+//! With `--http` the clients ask through the query server instead (`POST /query` on a
+//! `QueryServer` on 127.0.0.1, as `vlem run --serve` runs it), and one more client asks
+//! `GET /status` every 50 ms in both runs: its latencies show whether status answers wait behind
+//! the queries.
+//!
 //! ```sh
-//! cargo bench --bench live_query_load [-- DATASET [HZ [CLIENTS [TEXTS]]]]
+//! cargo bench --bench live_query_load [-- DATASET [HZ [CLIENTS [TEXTS]]]] [--http]
 //! ```
 #![allow(clippy::unwrap_used, clippy::expect_used, reason = "a benchmark")]
 
@@ -29,6 +34,7 @@ fn main() {
         .skip(1)
         .filter(|a| !a.starts_with("--"))
         .collect();
+    let http = std::env::args().any(|a| a == "--http");
     let repo = PathBuf::from(env!("CARGO_MANIFEST_DIR"));
     let dataset = args.first().map_or_else(
         || repo.join("../shared/data/icl-livingroom1"),
@@ -43,27 +49,43 @@ fn main() {
     let texts: usize = args
         .get(3)
         .map_or(2, |a| a.parse().expect("a number of texts per query"));
-    let load = Load { hz, clients, texts };
+    let load = Load {
+        hz,
+        clients,
+        texts,
+        http,
+    };
     if !dataset.is_dir() {
         eprintln!("live_query_load: no dataset at {}", dataset.display());
         std::process::exit(2);
     }
     // Warm the page cache and the allocator once, then measure both runs.
-    run(&repo, &dataset, None);
-    for load in [None, Some(load)] {
+    let idle = Load { clients: 0, ..load };
+    run(&repo, &dataset, idle);
+    for load in [idle, load] {
         run(&repo, &dataset, load);
     }
 }
 
-/// The query load: `clients` threads, each asking `texts` texts at up to `hz`.
+/// The query load: `clients` threads, each asking `texts` texts at up to `hz`, in the library or
+/// over HTTP.
 #[derive(Clone, Copy)]
 struct Load {
     hz: f64,
     clients: usize,
     texts: usize,
+    http: bool,
 }
 
-fn run(repo: &std::path::Path, dataset: &std::path::Path, load: Option<Load>) {
+/// An HTTP agent that reads error statuses as answers.
+fn agent() -> ureq::Agent {
+    ureq::Agent::config_builder()
+        .http_status_as_error(false)
+        .build()
+        .new_agent()
+}
+
+fn run(repo: &std::path::Path, dataset: &std::path::Path, load: Load) {
     let (config, ctx) = vlem_core::load_config(&repo.join("configs/demo.toml")).unwrap();
     let mut source = vlem_datasets::open(&config.dataset, dataset).unwrap();
     let mut pipeline = Pipeline::from_config(&config, &ctx).unwrap();
@@ -79,22 +101,64 @@ fn run(repo: &std::path::Path, dataset: &std::path::Path, load: Option<Load>) {
         "grey",
         "black",
     ];
-    let texts: Vec<String> = (0..load.map_or(0, |l| l.texts))
+    let texts: Vec<String> = (0..if load.clients > 0 { load.texts } else { 0 })
         .map(|i| WORDS[i % WORDS.len()].to_owned())
         .collect();
+    let out = tempfile::tempdir().unwrap();
+    let server = load.http.then(|| {
+        vlem_server::QueryServer::start(
+            "127.0.0.1:0",
+            live.clone(),
+            vlem_server::ServeOptions::new(out.path().to_path_buf(), ctx.clone()),
+        )
+        .unwrap()
+    });
+    let address = server.as_ref().map(|s| s.address().to_string());
+    let body = serde_json::json!({ "texts": texts }).to_string();
     let mapping = AtomicBool::new(true);
     let start = Instant::now();
-    let (report, latencies) = std::thread::scope(|scope| {
-        let clients: Vec<_> = (0..load.map_or(0, |l| l.clients))
+    let (report, latencies, status_latencies) = std::thread::scope(|scope| {
+        let status = address.as_deref().map(|address| {
+            let mapping = &mapping;
+            scope.spawn(move || {
+                let (agent, mut latencies) = (agent(), Vec::new());
+                while mapping.load(Ordering::Acquire) {
+                    let t = Instant::now();
+                    let answer = agent.get(format!("http://{address}/status")).call();
+                    assert_eq!(answer.unwrap().status().as_u16(), 200);
+                    latencies.push(t.elapsed().as_secs_f64() * 1e3);
+                    std::thread::sleep(Duration::from_millis(50));
+                }
+                latencies
+            })
+        });
+        let clients: Vec<_> = (0..load.clients)
             .map(|_| {
                 let (live, segmenter, texts, mapping) = (&live, &segmenter, &texts, &mapping);
-                let period = Duration::from_secs_f64(1.0 / load.map_or(1.0, |l| l.hz));
+                let (address, body) = (address.as_deref(), &body);
+                let period = Duration::from_secs_f64(1.0 / load.hz);
                 scope.spawn(move || {
+                    let agent = agent();
                     let mut latencies = Vec::new();
                     while mapping.load(Ordering::Acquire) {
                         let t = Instant::now();
-                        let _ =
-                            answer_live(live, segmenter.as_ref(), texts, &AnswerOptions::default());
+                        match address {
+                            Some(address) => {
+                                let _ = agent
+                                    .post(format!("http://{address}/query"))
+                                    .header("Content-Type", "application/json")
+                                    .send(body.as_str())
+                                    .and_then(|mut r| r.body_mut().read_to_string());
+                            }
+                            None => {
+                                let _ = answer_live(
+                                    live,
+                                    segmenter.as_ref(),
+                                    texts,
+                                    &AnswerOptions::default(),
+                                );
+                            }
+                        }
                         let took = t.elapsed();
                         latencies.push(took.as_secs_f64() * 1e3);
                         std::thread::sleep(period.saturating_sub(took));
@@ -111,21 +175,18 @@ fn run(repo: &std::path::Path, dataset: &std::path::Path, load: Option<Load>) {
             .into_iter()
             .flat_map(|c| c.join().unwrap())
             .collect();
-        (report, latencies)
+        let status_latencies = status.map(|s| s.join().unwrap()).unwrap_or_default();
+        (report, latencies, status_latencies)
     });
+    drop(server);
     let wall = start.elapsed().as_secs_f64();
-    let mut sorted = latencies.clone();
-    sorted.sort_by(f64::total_cmp);
-    let percentile = |p: f64| {
-        sorted
-            .get(((sorted.len() as f64 - 1.0) * p).round() as usize)
-            .copied()
-    };
+    let (sorted, status_sorted) = (sorted(&latencies), sorted(&status_latencies));
     println!(
         "{}",
         serde_json::json!({
-            "query_hz": load.map(|l| l.hz),
-            "clients": load.map_or(0, |l| l.clients),
+            "query_hz": (load.clients > 0).then_some(load.hz),
+            "clients": load.clients,
+            "over_http": load.http,
             "texts_per_query": texts.len(),
             "frames": report.frames_processed,
             "frames_per_second": report.frames_processed as f64 / wall,
@@ -133,9 +194,25 @@ fn run(repo: &std::path::Path, dataset: &std::path::Path, load: Option<Load>) {
             "encode_mean_ms": report.stage_ms.get("encode").map(|t| t.mean_ms),
             "map_points": live.status().map_len,
             "queries": latencies.len(),
-            "query_median_ms": percentile(0.5),
-            "query_p95_ms": percentile(0.95),
+            "query_median_ms": percentile(&sorted, 0.5),
+            "query_p95_ms": percentile(&sorted, 0.95),
             "query_max_ms": sorted.last(),
+            "status_requests": status_sorted.len(),
+            "status_median_ms": percentile(&status_sorted, 0.5),
+            "status_p95_ms": percentile(&status_sorted, 0.95),
+            "status_max_ms": status_sorted.last(),
         })
     );
+}
+
+fn sorted(values: &[f64]) -> Vec<f64> {
+    let mut sorted = values.to_vec();
+    sorted.sort_by(f64::total_cmp);
+    sorted
+}
+
+fn percentile(sorted: &[f64], p: f64) -> Option<f64> {
+    sorted
+        .get(((sorted.len() as f64 - 1.0) * p).round() as usize)
+        .copied()
 }
