@@ -133,7 +133,7 @@ pub struct RunStatus {
 }
 
 /// The map's kind and size as of its last change, read without the map's lock.
-#[derive(Clone, Debug, PartialEq, Eq, Serialize, Deserialize)]
+#[derive(Clone, Debug, Default, PartialEq, Eq, Serialize, Deserialize)]
 pub struct MapSummary {
     /// Registered map name.
     pub kind: String,

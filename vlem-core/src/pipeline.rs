@@ -737,7 +737,7 @@ fn embedding_stages<'a>(
                 embeddings,
             } = work;
             // The write lock covers exactly one integration: readers see whole frames only.
-            let (map_len, host_bytes, device_bytes) = live.write(|state| -> Result<_> {
+            live.write(|state| -> Result<_> {
                 let _: IntegrationStats = state.map.integrate(&Observation {
                     frame,
                     pose,
@@ -745,17 +745,16 @@ fn embedding_stages<'a>(
                 })?;
                 state.frames_integrated += 1;
                 state.last_frame = Some(frame.index);
-                Ok((
-                    state.map.len(),
-                    state.map.memory_bytes(),
-                    state.map.device_memory_bytes(),
-                ))
+                Ok(())
             })??;
+            // The write refreshed the map's summary; only this stage writes, so it is this frame's.
+            let summary = live.summary().unwrap_or_default();
+            let map_len = summary.points;
             live.update_status(|status| {
                 status.frames_integrated += 1;
                 status.map_len = map_len;
-                status.map_host_bytes = host_bytes;
-                status.map_device_bytes = device_bytes;
+                status.map_host_bytes = summary.host_bytes;
+                status.map_device_bytes = summary.device_bytes;
             });
             // Only this stage writes, so the map read now is the one just integrated.
             if let Some(map) = live.map_read() {

@@ -324,7 +324,8 @@ fn accept_loop(listener: &TcpListener, shared: &Arc<Shared>) {
         let spawned = std::thread::Builder::new().name("vlem-http".into()).spawn({
             let shared = shared.clone();
             move || {
-                serve_connection(&shared, stream);
+                // A bug on one connection must not keep its place under the cap.
+                let _ = catch_unwind(AssertUnwindSafe(|| serve_connection(&shared, stream)));
                 lock(&shared.open).remove(&id);
                 shared.closed.notify_all();
             }
