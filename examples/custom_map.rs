@@ -25,7 +25,7 @@ use vlem_core::{
     BuildContext, Config, CoreError, EmbeddingMap, IntegrationStats, MapBudget, MapMetadata,
     MapSnapshot, Observation, StageKind, parse_params,
 };
-use vlem_maps::kit::{FramePixels, check_observation, embedding, positive_metres};
+use vlem_maps::kit::{FramePixels, check_observation, count_in, embedding, number_in};
 use vlem_maps::storage::EmbeddingStore;
 // Linked for their registrations: the `ground-truth` tracker and the `colour-names` encoder.
 use vlem_plugin_colour_names as _;
@@ -60,7 +60,15 @@ struct LatestVoxelMap {
 
 fn build(params: &toml::Table, ctx: &BuildContext) -> vlem_core::Result<Box<dyn EmbeddingMap>> {
     let config: LatestVoxelConfig = parse_params(StageKind::Map, NAME, params)?;
-    positive_metres(NAME, "voxel_size", config.voxel_size)?;
+    // Every numeric setting has a range, refused at build with the key, the range and the value.
+    number_in(NAME, "voxel_size", config.voxel_size, (0.001, 10.0), "m")?;
+    count_in(
+        NAME,
+        "max_voxels",
+        config.max_voxels,
+        (1, 1 << 30),
+        "voxels",
+    )?;
     let dim = config.common().validate(NAME, ctx.embedding_dim)?;
     Ok(Box::new(LatestVoxelMap {
         embeddings: EmbeddingStore::new(dim, config.precision),

@@ -102,11 +102,13 @@ impl GraphConfig {
                 self.sigma
             )));
         }
-        if !(self.k.is_finite() && self.k >= 0.0) {
-            return Err(BackendError::InvalidParams(format!(
-                "k must be finite and not negative, got {}",
-                self.k
-            )));
+        // The merge threshold k / |C| of Felzenszwalb and Huttenlocher: past 1e6 every image is
+        // one region.
+        if let Err(range) = vlem_core::ranges::number(self.k, 0.0, 1e6, "") {
+            return Err(BackendError::InvalidParams(format!("k {range}")));
+        }
+        if let Err(range) = vlem_core::ranges::count(self.min_size, 0, 1 << 24, "pixels") {
+            return Err(BackendError::InvalidParams(format!("min_size {range}")));
         }
         if !(1..=MAX_DOWNSCALE).contains(&self.downscale) {
             return Err(BackendError::InvalidParams(format!(

@@ -18,6 +18,29 @@ pub const IMAGENET_MEAN: [f32; 3] = [0.485, 0.456, 0.406];
 /// ImageNet's channel standard deviation.
 pub const IMAGENET_STD: [f32; 3] = [0.229, 0.224, 0.225];
 
+/// The largest `short_side` a patch encoder accepts, in pixels. Attention (and NARADIO's
+/// Gaussian prior) grow with the square of the token count: at 1536 px a 4:3 frame is 12,288
+/// patches of 16 px and NARADIO's prior alone is 0.6 GB; beyond, one frame needs many GB.
+pub const MAX_SHORT_SIDE: u32 = 1536;
+
+/// Checks a configured `short_side`: a multiple of the model's `patch` size, at most
+/// [`MAX_SHORT_SIDE`].
+///
+/// # Errors
+/// [`BackendError::InvalidParams`] naming the value and what is accepted.
+pub fn check_short_side(short_side: u32, patch: usize, example: u32) -> Result<(), BackendError> {
+    let aligned = short_side > 0
+        && usize::try_from(short_side).is_ok_and(|side| side.is_multiple_of(patch.max(1)));
+    if !aligned || short_side > MAX_SHORT_SIDE {
+        return Err(BackendError::InvalidParams(format!(
+            "short_side must be a multiple of the patch size {patch} from {patch} to \
+             {MAX_SHORT_SIDE} pixels (attention grows with the square of the patches), e.g. \
+             {example}; got {short_side}"
+        )));
+    }
+    Ok(())
+}
+
 /// The input size, `(width, height)`, for a `width × height` frame whose shorter side becomes
 /// `short_side` and whose longer side keeps the aspect ratio, rounded to the nearest multiple
 /// of `patch` (at least one patch). `short_side` is rounded to a multiple of `patch` likewise.

@@ -438,8 +438,16 @@ fn registry_builds_clip_and_refuses_bad_parameters() {
     };
     let m = message("model_dir = \"tiny-gelu\"\nbatch_sise = 4");
     assert!(m.contains("batch_sise"), "{m}");
-    let m = message("model_dir = \"tiny-gelu\"\nbatch_size = 0");
-    assert!(m.contains("batch_size must be at least 1"), "{m}");
+    for (batch, got) in [
+        ("0", "got 0"),
+        ("18014398509481984", "got 18014398509481984"),
+    ] {
+        let m = message(&format!("model_dir = \"tiny-gelu\"\nbatch_size = {batch}"));
+        assert!(
+            m.contains("batch_size must lie in 1–1024 crops") && m.contains(got),
+            "{m}"
+        );
+    }
     let m = message("model_dir = \"tiny-gelu\"\ntemplates = [\"a photo\"]");
     assert!(m.contains("needs a {}"), "{m}");
     let m = message("model_dir = \"tiny-gelu\"\ntemplates = []");

@@ -144,6 +144,16 @@ pub enum DatasetKind {
     Rosbag2,
 }
 
+/// The depth scales accepted (`[dataset] depth_scale`, `[ros2] depth_scale`), in raw units per
+/// metre: 1 (depth in metres) to 1000 (millimetres), 5000 (TUM) and 6553.5 (Replica) lie well
+/// inside; the datasets' median-depth check catches a wrong scale within it.
+pub const DEPTH_SCALE_RANGE: (f64, f64) = (1e-3, 1e7);
+
+/// The largest time difference accepted between a colour image, its depth image and its pose when
+/// a bag or a live stream pairs them (`max_time_difference`), in seconds: more pairs a camera's
+/// images with those of another moment.
+pub const MAX_TIME_DIFFERENCE_S: f64 = 1.0;
+
 /// `[dataset]`: where frames come from.
 #[derive(Clone, Debug, Default, Deserialize, Serialize, PartialEq)]
 #[serde(deny_unknown_fields)]

@@ -11,6 +11,7 @@ pub mod live;
 pub mod mapfile;
 pub mod pipeline;
 pub mod query;
+pub mod ranges;
 mod registry;
 mod stage;
 pub mod stream;

@@ -146,6 +146,13 @@ pub(crate) fn depth_scale(config: &DatasetConfig, default: f64, dir: &Path) -> R
             ),
         });
     }
+    let (min, max) = vlem_core::config::DEPTH_SCALE_RANGE;
+    vlem_core::ranges::number(scale, min, max, "raw units per metre").map_err(|range| {
+        DatasetError::BadConfig {
+            path: dir.to_path_buf(),
+            message: format!("depth_scale {range}"),
+        }
+    })?;
     // Depth images are f32; the scale only needs that precision.
     Ok(scale as f32)
 }

@@ -11,6 +11,7 @@ pub mod dbscan;
 pub mod gmm;
 
 use serde::Deserialize;
+use vlem_core::ranges;
 use vlem_core::{BuildContext, PointSet, QueryScores, Segmenter, StageKind, parse_params};
 
 use crate::error::QueryError;
@@ -304,32 +305,33 @@ impl Default for ClusterSegmenter {
 
 const CLUSTER: &str = "cluster";
 
+/// The most mixture components the cluster segmenter fits (3 separates background, clutter and
+/// the queried object; dozens are already one per point set).
+const MAX_COMPONENTS: usize = 64;
+
 fn build_cluster(
     params: &toml::Table,
     _ctx: &BuildContext,
 ) -> vlem_core::Result<Box<dyn Segmenter>> {
     let s: ClusterSegmenter = parse_params(StageKind::Segmenter, CLUSTER, params)?;
+    let range = |name: &'static str, checked: Result<(), String>| {
+        checked.map_err(|reason| QueryError::InvalidParameter { name, reason })
+    };
     let checked = check_unit("threshold", s.threshold)
         .and_then(|()| check_baseline(&s.baseline))
         .and_then(|()| {
-            if s.components == 0 {
-                Err(QueryError::InvalidParameter {
-                    name: "components",
-                    reason: "must be at least 1".into(),
-                })
-            } else if !(s.eps > 0.0 && s.eps.is_finite()) {
-                Err(QueryError::InvalidParameter {
-                    name: "eps",
-                    reason: format!("must be a positive distance in metres, got {}", s.eps),
-                })
-            } else if s.min_points == 0 {
-                Err(QueryError::InvalidParameter {
-                    name: "min_points",
-                    reason: "must be at least 1".into(),
-                })
-            } else {
-                Ok(())
-            }
+            // The mixture fit holds points × components responsibilities, on every query.
+            range(
+                "components",
+                ranges::count(s.components, 1, MAX_COMPONENTS, "").map(drop),
+            )
+        })
+        .and_then(|()| range("eps", ranges::number(s.eps, 1e-4, 10.0, "m").map(drop)))
+        .and_then(|()| {
+            range(
+                "min_points",
+                ranges::count(s.min_points, 1, 1_000_000, "points").map(drop),
+            )
         });
     checked.map_err(|e| e.into_core(StageKind::Segmenter, CLUSTER))?;
     Ok(Box::new(s))

@@ -22,9 +22,10 @@ use ros2_client::{
 };
 use serde::Serialize;
 use serde::de::DeserializeOwned;
-use vlem_core::config::{Ros2Config, Ros2PoseType};
+use vlem_core::config::{DEPTH_SCALE_RANGE, MAX_TIME_DIFFERENCE_S, Ros2Config, Ros2PoseType};
 use vlem_core::live::LiveMap;
 use vlem_core::pipeline::{Pipeline, RunReport};
+use vlem_core::ranges;
 use vlem_core::stream::{FrameSender, StreamSpec, frame_stream};
 use vlem_core::{CoreError, Segmenter};
 use vlem_query::answer::{AnswerOptions, answer_live};
@@ -71,9 +72,10 @@ pub fn run_node(
     stop: &AtomicBool,
 ) -> Result<NodeReport> {
     validate(settings, &pipeline)?;
+    let domain = domain_id(settings)?;
     let live = pipeline.live();
     let status = Arc::new(Status::default());
-    let ctx = context(settings)?;
+    let ctx = context(settings, domain)?;
     let mut node = ctx
         .new_node(
             NodeName::new("/", &settings.node_name).map_err(dds("node name"))?,
@@ -84,7 +86,7 @@ pub fn run_node(
     eprintln!(
         "vlem ros2: node /{} on domain {} listening to {} + {} ({}), answering {}",
         settings.node_name,
-        domain_id(settings),
+        domain,
         settings.colour_topic,
         settings.depth_topic,
         settings.camera_info_topic,
@@ -152,9 +154,7 @@ pub fn run_node(
                 eprintln!(
                     "vlem ros2: no image on {} or {} yet; check the topic names, the domain \
                      ({}) and that the camera publishes (`ros2 topic list`, `ros2 topic hz`)",
-                    settings.colour_topic,
-                    settings.depth_topic,
-                    domain_id(settings)
+                    settings.colour_topic, settings.depth_topic, domain
                 );
             }
         }
@@ -265,7 +265,28 @@ fn start_pipeline(
 }
 
 fn validate(settings: &Ros2Config, pipeline: &Pipeline) -> Result<()> {
+    validate_settings(settings)?;
+    if pipeline.tracker().needs_dataset_poses()
+        && settings.pose_topic.is_none()
+        && settings.tf.is_none()
+    {
+        return Err(Ros2Error::Config(format!(
+            "the tracker `{}` reads poses from the source, but [ros2] has no pose_topic or tf; \
+             set one or use [tracker] kind = \"odometry\" or \"frame-to-model\"",
+            pipeline.tracker().name()
+        )));
+    }
+    Ok(())
+}
+
+/// The checks of `[ros2]` alone: every number in its range (docs/config-ranges.md).
+fn validate_settings(settings: &Ros2Config) -> Result<()> {
     let bad = |message: String| Err(Ros2Error::Config(message));
+    let in_range = |key: &str, checked: std::result::Result<f64, String>| {
+        checked
+            .map(|_| ())
+            .map_err(|range| Ros2Error::Config(format!("[ros2] {key} {range}")))
+    };
     let positive = |v: f64| v.is_finite() && v > 0.0;
     if !positive(settings.max_time_difference) {
         return bad(format!(
@@ -273,22 +294,47 @@ fn validate(settings: &Ros2Config, pipeline: &Pipeline) -> Result<()> {
             settings.max_time_difference
         ));
     }
-    if !positive(settings.depth_scale) {
-        return bad(format!(
-            "[ros2] depth_scale must be positive, got {}",
-            settings.depth_scale
-        ));
-    }
+    in_range(
+        "max_time_difference",
+        ranges::number(
+            settings.max_time_difference,
+            0.0,
+            MAX_TIME_DIFFERENCE_S,
+            "s",
+        ),
+    )?;
+    in_range(
+        "depth_scale",
+        ranges::number(
+            settings.depth_scale,
+            DEPTH_SCALE_RANGE.0,
+            DEPTH_SCALE_RANGE.1,
+            "raw units per metre",
+        ),
+    )?;
     if !positive(settings.stall_seconds) {
         return bad(format!(
             "[ros2] stall_seconds must be positive, got {}",
             settings.stall_seconds
         ));
     }
-    if !(settings.map_rate.is_finite() && settings.map_rate >= 0.0) {
+    if settings.map_rate != 0.0 {
+        in_range(
+            "map_rate",
+            ranges::number(settings.map_rate, MAP_RATE_HZ.0, MAP_RATE_HZ.1, "Hz").map_err(
+                |range| format!("must be 0 (never) or {}", range.trim_start_matches("must ")),
+            ),
+        )?;
+    }
+    if let Err(range) = ranges::count(settings.map_max_points, 1, MAX_MAP_MESSAGE_POINTS, "points")
+    {
+        return bad(format!("[ros2] map_max_points {range}"));
+    }
+    let domain = domain_id(settings)?;
+    if let Err(range) = ranges::count(domain, 0, MAX_DOMAIN_ID, "") {
         return bad(format!(
-            "[ros2] map_rate must be 0 (never) or a rate in Hz, got {}",
-            settings.map_rate
+            "[ros2] domain_id (or $ROS_DOMAIN_ID) {range}: DDS derives its ports from it and has \
+             domains 0–{MAX_DOMAIN_ID} only"
         ));
     }
     if settings.queue == 0 {
@@ -299,33 +345,42 @@ fn validate(settings: &Ros2Config, pipeline: &Pipeline) -> Result<()> {
             "[ros2]: set pose_topic or tf, not both (two sources of the same poses)".into(),
         );
     }
-    if pipeline.tracker().needs_dataset_poses()
-        && settings.pose_topic.is_none()
-        && settings.tf.is_none()
-    {
-        return bad(format!(
-            "the tracker `{}` reads poses from the source, but [ros2] has no pose_topic or tf; \
-             set one or use [tracker] kind = \"odometry\" or \"frame-to-model\"",
-            pipeline.tracker().name()
-        ));
-    }
     Ok(())
 }
 
+/// The largest DDS domain id: the RTPS port formula (7400 + 250 × id + …) leaves the 16-bit port
+/// range above it.
+const MAX_DOMAIN_ID: u16 = 232;
+/// The map publication rates accepted besides 0 (never): a period between 1000 s and 1 ms.
+const MAP_RATE_HZ: (f64, f64) = (0.001, 1000.0);
+/// The most points one published map message may carry (36 bytes each in the PointCloud2).
+const MAX_MAP_MESSAGE_POINTS: usize = 50_000_000;
+
 /// `[ros2] domain_id`, else `$ROS_DOMAIN_ID`, else 0.
-fn domain_id(settings: &Ros2Config) -> u16 {
-    settings
-        .domain_id
-        .or_else(|| std::env::var("ROS_DOMAIN_ID").ok()?.trim().parse().ok())
-        .unwrap_or(0)
+///
+/// # Errors
+/// [`Ros2Error::Config`] for a `$ROS_DOMAIN_ID` that is not a number (it used to fall back to 0
+/// silently, joining another domain than the user's other nodes).
+fn domain_id(settings: &Ros2Config) -> Result<u16> {
+    if let Some(id) = settings.domain_id {
+        return Ok(id);
+    }
+    match std::env::var("ROS_DOMAIN_ID") {
+        Ok(text) if !text.trim().is_empty() => text.trim().parse().map_err(|_| {
+            Ros2Error::Config(format!(
+                "$ROS_DOMAIN_ID is `{text}`, not a domain id (0–{MAX_DOMAIN_ID})"
+            ))
+        }),
+        _ => Ok(0),
+    }
 }
 
 fn dds<E: std::fmt::Debug>(what: &'static str) -> impl Fn(E) -> Ros2Error {
     move |e| Ros2Error::Dds(format!("{what}: {e:?}"))
 }
 
-fn context(settings: &Ros2Config) -> Result<Context> {
-    let mut builder = DomainParticipantBuilder::new(domain_id(settings));
+fn context(settings: &Ros2Config, domain: u16) -> Result<Context> {
+    let mut builder = DomainParticipantBuilder::new(domain);
     if settings.localhost_only {
         builder = builder.with_only_networks([Ipv4Addr::LOCALHOST]);
     }
@@ -858,6 +913,48 @@ mod tests {
         assert_eq!(parse_query("grasp"), ("grasp".to_owned(), false));
         // A multi-byte character where the prefix would end is no prefix, and no panic.
         assert_eq!(parse_query("grasé: x"), ("grasé: x".to_owned(), false));
+    }
+
+    #[test]
+    fn out_of_range_settings_are_refused_naming_key_range_and_value() {
+        assert!(validate_settings(&Ros2Config::default()).is_ok());
+        /// Puts one setting out of its range.
+        type Change = fn(&mut Ros2Config);
+        let cases: [(Change, &str); 6] = [
+            (
+                |c| c.map_rate = 1e-30,
+                "[ros2] map_rate must be 0 (never) or lie in 0.001–1000 Hz, got 1e-30",
+            ),
+            (
+                |c| c.domain_id = Some(300),
+                "domain_id (or $ROS_DOMAIN_ID) must lie in 0–232",
+            ),
+            (
+                |c| c.depth_scale = 1e300,
+                "[ros2] depth_scale must lie in 0.001–1e7",
+            ),
+            (
+                |c| c.max_time_difference = 60.0,
+                "[ros2] max_time_difference must lie in 0–1 s",
+            ),
+            (
+                |c| c.map_max_points = 0,
+                "[ros2] map_max_points must lie in 1–50000000",
+            ),
+            (|c| c.queue = 0, "[ros2] queue must be at least 1"),
+        ];
+        for (change, expected) in cases {
+            let mut settings = Ros2Config::default();
+            change(&mut settings);
+            let error = validate_settings(&settings).unwrap_err().to_string();
+            assert!(error.contains(expected), "{error}");
+        }
+        // Never (0) stays allowed.
+        let never = Ros2Config {
+            map_rate: 0.0,
+            ..Ros2Config::default()
+        };
+        assert!(validate_settings(&never).is_ok());
     }
 
     #[test]

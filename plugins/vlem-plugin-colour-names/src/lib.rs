@@ -234,14 +234,20 @@ impl Default for ColourNamesConfig {
 
 /// The valid range of [`ColourNamesConfig::bins`].
 const BINS_RANGE: std::ops::RangeInclusive<u32> = 2..=64;
+/// The accepted `sigma`, in ΔE units: below, the weights underflow to NaN; above, every colour
+/// word weighs the same.
+const SIGMA_RANGE: (f64, f64) = (0.1, 1000.0);
 
 /// Errors of this encoder.
 #[derive(Debug, thiserror::Error)]
 #[non_exhaustive]
 pub enum ColourNamesError {
-    /// `sigma` is not a positive finite number.
-    #[error("sigma must be a positive number of ΔE units (e.g. 15), got {0}")]
-    InvalidSigma(f64),
+    /// `sigma` is outside 0.1–1000 (the message of `vlem_core::ranges`).
+    #[error(
+        "sigma {0} (ΔE units, e.g. 15; outside the range every colour gets the same, or a NaN, \
+         embedding)"
+    )]
+    InvalidSigma(String),
     /// `bins` is outside 2..=64.
     #[error("bins must be between 2 and 64 levels per channel (e.g. 16), got {0}")]
     InvalidBins(u32),
@@ -296,9 +302,8 @@ impl ColourNamesEncoder {
     /// # Errors
     /// [`ColourNamesError::InvalidSigma`] or [`ColourNamesError::InvalidBins`].
     pub fn new(config: ColourNamesConfig) -> Result<Self, ColourNamesError> {
-        if !(config.sigma.is_finite() && config.sigma > 0.0) {
-            return Err(ColourNamesError::InvalidSigma(config.sigma));
-        }
+        vlem_core::ranges::number(config.sigma, SIGMA_RANGE.0, SIGMA_RANGE.1, "")
+            .map_err(ColourNamesError::InvalidSigma)?;
         if !BINS_RANGE.contains(&config.bins) {
             return Err(ColourNamesError::InvalidBins(config.bins));
         }

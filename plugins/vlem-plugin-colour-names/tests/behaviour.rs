@@ -193,7 +193,12 @@ fn parameters_are_checked_with_messages_that_name_the_key() {
         "{err}"
     );
     let err = try_build("sigma = -1").err().unwrap().to_string();
-    assert!(err.contains("sigma must be a positive number"), "{err}");
+    assert!(
+        err.contains("sigma must lie in 0.1–1000, got -1 (ΔE units"),
+        "{err}"
+    );
+    let err = try_build("sigma = 1e-200").err().unwrap().to_string();
+    assert!(err.contains("got 1e-200"), "{err}");
     let err = try_build("bins = 1").err().unwrap().to_string();
     assert!(err.contains("bins must be between 2 and 64"), "{err}");
     let err = try_build("bins = \"many\"").err().unwrap().to_string();

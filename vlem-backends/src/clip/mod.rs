@@ -54,6 +54,9 @@ pub const MODEL_DIR_ENV: &str = "VLEM_CLIP_DIR";
 /// Crops per image-tower call when the config does not say.
 pub const DEFAULT_BATCH_SIZE: usize = 16;
 
+/// The largest `batch_size` accepted (crops per forward pass).
+pub const MAX_BATCH: usize = 1024;
+
 /// Parameters of the encoder: the `[encoder]` section without `kind`.
 #[derive(Clone, Debug, PartialEq, Deserialize)]
 #[serde(deny_unknown_fields, default)]
@@ -176,10 +179,9 @@ impl ClipEncoder {
         batch_size: usize,
     ) -> Result<Self, BackendError> {
         crate::prompts::check_templates(&templates, "[encoder]")?;
-        if batch_size == 0 {
-            return Err(BackendError::InvalidParams(
-                "batch_size must be at least 1".to_owned(),
-            ));
+        // A batch is batch_size crops of 3 × 224² values: past this it is only memory.
+        if let Err(range) = vlem_core::ranges::count(batch_size, 1, MAX_BATCH, "crops") {
+            return Err(BackendError::InvalidParams(format!("batch_size {range}")));
         }
         Ok(Self {
             model,

@@ -241,14 +241,11 @@ impl Dinov3Encoder {
         short_side: u32,
         templates: Vec<String>,
     ) -> Result<Self, BackendError> {
-        let patch = backbone.config().patch_size;
-        if short_side == 0 || !(short_side as usize).is_multiple_of(patch) {
-            return Err(BackendError::InvalidParams(format!(
-                "short_side must be a positive multiple of the patch size {patch}, e.g. {}; got \
-                 {short_side}",
-                DEFAULT_SHORT_SIDE
-            )));
-        }
+        crate::patch_input::check_short_side(
+            short_side,
+            backbone.config().patch_size,
+            DEFAULT_SHORT_SIDE,
+        )?;
         crate::prompts::check_templates(&templates, "[encoder]")?;
         if backbone.config().hidden_size != heads.patch_dim() {
             return Err(BackendError::InvalidParams(format!(

@@ -230,23 +230,19 @@ impl NaradioEncoder {
     ) -> Result<Self, BackendError> {
         let bad = |m: String| Err(BackendError::InvalidParams(m));
         crate::prompts::check_templates(&config.templates, "[encoder]")?;
-        if !(config.gauss_std.is_finite() && config.gauss_std > 0.0) {
-            return bad(format!(
-                "gauss_std must be positive, got {}",
-                config.gauss_std
-            ));
+        // Below, the prior's 1 / (2 std²) overflows to NaN attention; above, it is flat.
+        if let Err(range) = vlem_core::ranges::number(config.gauss_std, 0.1, 1000.0, "patches") {
+            return bad(format!("gauss_std {range}"));
         }
         let configured = config.model_dir.as_deref().map(|p| ctx.resolve(p));
         let dir = locate_model_dir(configured.as_deref())?;
         let device = config.device.open()?;
         let model = RadioModel::load(&dir, &device)?;
-        let patch = model.config().patch_size;
-        if config.short_side == 0 || !(config.short_side as usize).is_multiple_of(patch) {
-            return bad(format!(
-                "short_side must be a positive multiple of the patch size {patch}, got {}",
-                config.short_side
-            ));
-        }
+        crate::patch_input::check_short_side(
+            config.short_side,
+            model.config().patch_size,
+            NaradioEncoderConfig::default().short_side,
+        )?;
         let text = SiglipText::load(&dir.join("text"), &device)?;
         let dim = model.adaptor_dim()?;
         Ok(Self {

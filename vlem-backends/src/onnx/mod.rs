@@ -537,10 +537,12 @@ fn check_image_params(c: &ImageConfig) -> Result<(), BackendError> {
                 .to_owned(),
         ));
     }
-    if [c.size, c.width, c.height].contains(&Some(0)) {
-        return Err(invalid(
-            "[encoder.image] input sizes must be positive".to_owned(),
-        ));
+    for (key, side) in [("size", c.size), ("width", c.width), ("height", c.height)] {
+        if let Some(side) = side
+            && let Err(range) = vlem_core::ranges::count(side, 1, MAX_INPUT_SIDE, "pixels")
+        {
+            return Err(invalid(format!("[encoder.image] {key} {range}")));
+        }
     }
     if let Some(bad) = c.std.iter().find(|s| !(s.is_finite() && **s != 0.0)) {
         return Err(invalid(format!(
@@ -569,10 +571,10 @@ fn check_image_params(c: &ImageConfig) -> Result<(), BackendError> {
                         .to_owned(),
                 ));
             }
-            if c.batch == Some(0) {
-                return Err(invalid(
-                    "[encoder.image] batch must be at least 1".to_owned(),
-                ));
+            if let Some(batch) = c.batch
+                && let Err(range) = vlem_core::ranges::count(batch, 1, MAX_BATCH, "")
+            {
+                return Err(invalid(format!("[encoder.image] batch {range}")));
             }
         }
         OutputKind::PatchGrid => {
@@ -593,6 +595,11 @@ fn check_image_params(c: &ImageConfig) -> Result<(), BackendError> {
                 }
                 Some(0) => return Err(invalid("patch_size must be positive".to_owned())),
                 Some(_) => {}
+            }
+            if let Some(skip) = c.skip_tokens
+                && let Err(range) = vlem_core::ranges::count(skip, 0, 1024, "tokens")
+            {
+                return Err(invalid(format!("[encoder.image] skip_tokens {range}")));
             }
         }
     }
@@ -808,12 +815,17 @@ impl ImageTower {
     }
 }
 
+/// The most crops in one image batch (`[encoder.image] batch`).
+const MAX_BATCH: usize = 1024;
+/// The widest or tallest model input accepted (`[encoder.image] size`, `width`, `height`).
+const MAX_INPUT_SIDE: u32 = 4096;
+
 /// Checks the text parameters that need no model.
 fn check_text_params(c: &TextConfig) -> Result<(), BackendError> {
-    if c.max_length < 2 {
-        return Err(invalid(
-            "[encoder.text] max_length must be at least 2".to_owned(),
-        ));
+    // Every text batch holds texts × max_length ids (twice, with the mask): CLIP uses 77, and
+    // text encoders of this kind stop at a few thousand positions.
+    if let Err(range) = vlem_core::ranges::count(c.max_length, 2, 4096, "tokens") {
+        return Err(invalid(format!("[encoder.text] max_length {range}")));
     }
     crate::prompts::check_templates(&c.templates, "[encoder.text]")
 }
@@ -844,6 +856,15 @@ impl TextTower {
             .pad_id
             .or_else(|| tokenizer.get_padding().map(|p| p.pad_id))
             .unwrap_or(0);
+        let vocabulary = tokenizer.get_vocab_size(true);
+        if usize::try_from(pad_id).map_or(true, |id| id >= vocabulary) {
+            return Err(invalid(format!(
+                "[encoder.text] pad_id must be a token id of the tokenizer ({} holds {vocabulary} \
+                 tokens, ids 0–{}), got {pad_id}",
+                tokenizer_path.display(),
+                vocabulary.saturating_sub(1)
+            )));
+        }
         // Padding is done per batch here, not by the tokenizer.
         tokenizer.with_padding(None);
 

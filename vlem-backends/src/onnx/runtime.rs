@@ -249,11 +249,12 @@ impl Model {
         let mut builder = Session::builder(environment)
             .map_err(|e| invalid(format!("cannot create a session: {e}")))?;
         if let Some(threads) = threads {
-            if threads == 0 {
-                return Err(BackendError::InvalidParams(
-                    "threads must be at least 1 (leave it out for ONNX Runtime's default)"
-                        .to_owned(),
-                ));
+            // Each session starts this many threads; more than a large machine's cores only
+            // oversubscribe it.
+            if let Err(range) = vlem_core::ranges::count(threads, 1, 256, "") {
+                return Err(BackendError::InvalidParams(format!(
+                    "threads {range} (leave it out for ONNX Runtime's default)"
+                )));
             }
             builder = builder
                 .with_intra_threads(threads)

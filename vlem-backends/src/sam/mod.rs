@@ -251,11 +251,14 @@ impl SamConfig {
                 return bad(format!("{name} must be in [0, 1], got {v}"));
             }
         }
-        if !(self.stability_score_offset.is_finite() && self.stability_score_offset >= 0.0) {
-            return bad(format!(
-                "stability_score_offset must be a finite number >= 0, got {}",
-                self.stability_score_offset
-            ));
+        // In mask-logit units (SAM's logits lie within a few tens): past 100 no mask is stable.
+        if let Err(range) = vlem_core::ranges::number(self.stability_score_offset, 0.0, 100.0, "") {
+            return bad(format!("stability_score_offset {range}"));
+        }
+        if let Err(range) =
+            vlem_core::ranges::count(self.min_mask_region_area, 0, 1 << 24, "pixels")
+        {
+            return bad(format!("min_mask_region_area {range}"));
         }
         if self.refine_points > 65_536 {
             return bad(format!(

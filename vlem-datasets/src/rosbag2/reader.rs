@@ -103,6 +103,13 @@ impl Rosbag2Reader {
                 "rosbag2.max_time_difference must be a positive number of seconds, got {tolerance}"
             )));
         }
+        vlem_core::ranges::number(
+            tolerance,
+            0.0,
+            vlem_core::config::MAX_TIME_DIFFERENCE_S,
+            "s",
+        )
+        .map_err(|range| bad_config(format!("rosbag2.max_time_difference {range}")))?;
         if settings.pose_topic.is_some() && settings.tf.is_some() {
             return Err(bad_config(
                 "rosbag2: set pose_topic or tf, not both (they are two sources of the same poses)"

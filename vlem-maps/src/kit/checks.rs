@@ -17,6 +17,38 @@ pub fn invalid_parameter(map: &str, name: &'static str, reason: &str) -> CoreErr
     )
 }
 
+/// `value` must lie in `min..=max` (`vlem_core::ranges::count`; `unit` may be empty).
+///
+/// # Errors
+/// [`invalid_parameter`] naming the range and the value otherwise.
+pub fn count_in(
+    map: &str,
+    name: &'static str,
+    value: usize,
+    (min, max): (usize, usize),
+    unit: &str,
+) -> Result<(), CoreError> {
+    vlem_core::ranges::count(value, min, max, unit)
+        .map(|_| ())
+        .map_err(|range| invalid_parameter(map, name, &range))
+}
+
+/// `value` must be a number in `min..=max` (`vlem_core::ranges::number`).
+///
+/// # Errors
+/// [`invalid_parameter`] naming the range and the value otherwise.
+pub fn number_in(
+    map: &str,
+    name: &'static str,
+    value: f32,
+    (min, max): (f32, f32),
+    unit: &str,
+) -> Result<(), CoreError> {
+    vlem_core::ranges::number(value, min, max, unit)
+        .map(|_| ())
+        .map_err(|range| invalid_parameter(map, name, &range))
+}
+
 /// `value` must be at least 1 (a budget, a count, a stride).
 ///
 /// # Errors

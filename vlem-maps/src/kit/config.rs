@@ -12,7 +12,7 @@
 use vlem_backends::ComputeDevice;
 use vlem_core::CoreError;
 
-use super::checks::{invalid_parameter, positive_metres, resolve_dim};
+use super::checks::{count_in, number_in, positive_metres, resolve_dim};
 use crate::storage::Precision;
 
 /// Default [`MapCommon::max_depth`] in metres.
@@ -81,9 +81,16 @@ impl MapCommon {
         encoder_dim: Option<usize>,
     ) -> Result<usize, CoreError> {
         positive_metres(map, "max_depth", self.max_depth)?;
-        if self.pixel_stride == 0 {
-            return Err(invalid_parameter(map, "pixel_stride", "must be at least 1"));
-        }
+        // No RGB-D sensor measures farther; a larger bound is a unit mistake.
+        number_in(map, "max_depth", self.max_depth, (0.0, 1000.0), "m")?;
+        // Past 64 a map keeps a pixel in 4096 and is a map of nothing.
+        count_in(
+            map,
+            "pixel_stride",
+            usize::try_from(self.pixel_stride).unwrap_or(usize::MAX),
+            (1, 64),
+            "pixels",
+        )?;
         resolve_dim(map, self.dim, encoder_dim)
     }
 }

@@ -21,8 +21,8 @@ pub(crate) mod memory;
 mod pixels;
 
 pub use checks::{
-    at_least_one, check_observation, check_snapshot, invalid_parameter, positive_metres,
-    resolve_dim, unit_weight,
+    at_least_one, check_observation, check_snapshot, count_in, invalid_parameter, number_in,
+    positive_metres, resolve_dim, unit_weight,
 };
 pub use config::{DEFAULT_MAX_DEPTH, DEFAULT_PIXEL_STRIDE, MapCommon};
 pub use pixels::{FramePixels, Pixel, embedding};

@@ -32,8 +32,8 @@ use self::association::{Cell, FrameView, NONE};
 use self::voxel_groups::{GroupingBuffers, KEY_AXIS_VOXELS, bounding_box, runs};
 use crate::error::MapError;
 use crate::kit::{
-    FramePixels, at_least_one, check_observation, check_snapshot, embedding, invalid_parameter,
-    positive_metres, unit_weight,
+    FramePixels, check_observation, check_snapshot, count_in, embedding, invalid_parameter,
+    number_in, positive_metres, unit_weight,
 };
 use crate::storage::{EmbeddingStore, Table, fuse_into};
 #[cfg(feature = "candle")]
@@ -51,6 +51,14 @@ pub const NAME: &str = "point-cloud";
 /// The largest [`PointCloudConfig::window`], which bounds the cells one map point may visit
 /// (65 × 65); a wider search is what `association = "kd-tree"` is for.
 const MAX_WINDOW: u32 = 32;
+
+/// The largest point budget accepted: map rows are indexed with `u32`, and with `device = "cuda"`
+/// the whole budget is allocated when the map is built.
+pub const MAX_POINT_BUDGET: usize = 1 << 30;
+
+/// The widest fusion radius accepted (`max_distance`), in metres: wider, points of different
+/// surfaces fuse.
+const MAX_FUSION_DISTANCE_M: f32 = 1.0;
 
 crate::map_config! {
     /// `[map] kind = "point-cloud"` parameters.
@@ -87,8 +95,21 @@ impl PointCloudConfig {
 
     /// Checks the parameters; returns the embedding dimension.
     fn validate(&self, encoder_dim: Option<usize>) -> Result<usize, CoreError> {
-        at_least_one(NAME, "max_points", self.max_points)?;
+        count_in(
+            NAME,
+            "max_points",
+            self.max_points,
+            (1, MAX_POINT_BUDGET),
+            "points",
+        )?;
         positive_metres(NAME, "max_distance", self.max_distance)?;
+        number_in(
+            NAME,
+            "max_distance",
+            self.max_distance,
+            (0.0, MAX_FUSION_DISTANCE_M),
+            "m",
+        )?;
         unit_weight(NAME, "map_weight", self.map_weight)?;
         if self.window > MAX_WINDOW {
             return Err(invalid_parameter(

@@ -49,13 +49,16 @@ pub use self::hungarian::hungarian;
 use crate::error::MapError;
 use crate::kit::memory::{btree_bytes, hash_buckets};
 use crate::kit::{
-    FramePixels, at_least_one, check_observation, check_snapshot, invalid_parameter,
-    positive_metres, unit_weight,
+    FramePixels, check_observation, check_snapshot, count_in, invalid_parameter, number_in,
+    unit_weight,
 };
 use crate::storage::{EmbeddingStore, fuse_into};
 
 /// The registered name.
 pub const NAME: &str = "segment";
+
+/// The largest point budget accepted (as the other maps': rows are indexed with `u32`).
+pub const MAX_SEGMENT_POINTS: usize = 1 << 30;
 
 /// Tile size (pixels) of the 2D segments of a geometry-only map, which has no segmentation.
 const GEOMETRY_TILE: u32 = 32;
@@ -84,12 +87,19 @@ impl SegmentConfig {
     /// [`MapError::InvalidParameter`] (wrapped as a stage error) for out-of-range values and for a
     /// `dim` that disagrees with the encoder.
     pub fn build(&self, encoder_dim: Option<usize>) -> Result<SegmentMap, CoreError> {
-        at_least_one(NAME, "max_points", self.max_points)?;
-        positive_metres(NAME, "point_spacing", self.point_spacing)?;
+        count_in(
+            NAME,
+            "max_points",
+            self.max_points,
+            (1, MAX_SEGMENT_POINTS),
+            "points",
+        )?;
+        // Cells are keyed by i32 coordinates: finer than 0.1 mm they saturate within 200 m.
+        number_in(NAME, "point_spacing", self.point_spacing, (1e-4, 10.0), "m")?;
         if !(self.min_overlap > 0.0 && self.min_overlap <= 1.0) {
             return Err(invalid_parameter(NAME, "min_overlap", "must lie in (0, 1]"));
         }
-        at_least_one(NAME, "min_cells", self.min_cells)?;
+        count_in(NAME, "min_cells", self.min_cells, (1, 1_000_000), "cells")?;
         unit_weight(NAME, "map_weight", self.map_weight)?;
         let dim = self.common().validate(NAME, encoder_dim)?;
         Ok(SegmentMap::new(self.clone(), dim))

@@ -34,7 +34,7 @@ use vlem_core::{
 
 use crate::error::MapError;
 use crate::kit::memory::hash_buckets;
-use crate::kit::{FramePixels, check_observation, check_snapshot, invalid_parameter};
+use crate::kit::{FramePixels, check_observation, check_snapshot, invalid_parameter, number_in};
 #[cfg(feature = "candle")]
 use crate::storage::{CHUNK_ROWS, FrameTable, swap_removal_moves};
 use crate::storage::{EmbeddingStore, Table};
@@ -45,6 +45,9 @@ pub const NAME: &str = "voxel";
 /// Smallest accepted voxel size in metres: keeps integer voxel coordinates (`i32`) far from
 /// overflow (±214 km at this size).
 pub const MIN_VOXEL_SIZE: f32 = 1e-4;
+
+/// Largest accepted voxel size in metres: coarser, a room is a handful of voxels.
+pub const MAX_VOXEL_SIZE: f32 = 10.0;
 
 /// Largest accepted voxel budget: dense voxel indices are `u32`, and a frame's new voxels are
 /// added before eviction.
@@ -96,12 +99,13 @@ impl VoxelConfig {
     /// Checks the parameters; returns the embedding dimension.
     fn validate(&self, encoder_dim: Option<usize>) -> Result<usize, CoreError> {
         let invalid = |name: &'static str, reason: &str| invalid_parameter(NAME, name, reason);
-        if !(self.voxel_size.is_finite() && self.voxel_size >= MIN_VOXEL_SIZE) {
-            return Err(invalid(
-                "voxel_size",
-                &format!("must be a number of metres of at least {MIN_VOXEL_SIZE}"),
-            ));
-        }
+        number_in(
+            NAME,
+            "voxel_size",
+            self.voxel_size,
+            (MIN_VOXEL_SIZE, MAX_VOXEL_SIZE),
+            "m",
+        )?;
         if !(1..=MAX_VOXEL_BUDGET).contains(&self.max_voxels) {
             return Err(invalid(
                 "max_voxels",
@@ -1208,7 +1212,7 @@ mod tests {
         .unwrap_err();
         assert_eq!(
             err.to_string(),
-            "map `voxel`: parameter `voxel_size` must be a number of metres of at least 0.0001"
+            "map `voxel`: parameter `voxel_size` must lie in 1e-4–10 m, got 0"
         );
         let bad = [
             VoxelConfig {

@@ -102,6 +102,10 @@ impl Default for TsdfConfig {
 pub const MIN_VOXEL_SIZE: f32 = 0.001;
 /// The coarsest TSDF voxel accepted (1 m).
 pub const MAX_VOXEL_SIZE: f32 = 1.0;
+/// The widest truncation band accepted, in voxels (Open3D's examples use 4–8).
+pub const MAX_TRUNCATION_VOXELS: f32 = 64.0;
+/// The farthest depth fused, in metres (no RGB-D sensor measures farther).
+const MAX_DEPTH_M: f32 = 100.0;
 
 impl TsdfConfig {
     /// Checks every parameter.
@@ -140,14 +144,12 @@ impl TsdfConfig {
                 ),
             );
         }
-        if !(self.truncation_voxels.is_finite() && self.truncation_voxels >= 1.0) {
-            return fail(
-                "truncation_voxels",
-                format!(
-                    "must be a finite number of voxels >= 1, got {}",
-                    self.truncation_voxels
-                ),
-            );
+        // Each ray allocates the blocks within the truncation distance of its surface, so a
+        // wide band allocates without bound (1e6 voxels: kilometres of blocks per ray).
+        if let Err(range) =
+            vlem_core::ranges::number(self.truncation_voxels, 1.0, MAX_TRUNCATION_VOXELS, "voxels")
+        {
+            return fail("truncation_voxels", range);
         }
         if !(self.depth_min.is_finite() && self.depth_min >= 0.0) {
             return fail(
@@ -166,6 +168,9 @@ impl TsdfConfig {
                     self.depth_min, self.depth_max
                 ),
             );
+        }
+        if let Err(range) = vlem_core::ranges::number(self.depth_max, 0.0, MAX_DEPTH_M, "m") {
+            return fail("depth_max", range);
         }
         if !(self.max_weight >= 1.0 && self.max_weight <= f32::from(u16::MAX)) {
             return fail(
