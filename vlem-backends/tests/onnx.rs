@@ -7,7 +7,7 @@
 //! The `onnx` encoder on the tiny models of `goldens/onnx/` (written, with their goldens, by
 //! `goldens/onnx/make_onnx_models.py` from torch modules: the goldens are torch's outputs).
 //!
-//! These tests need the ONNX Runtime library (`python3 -m pip install onnxruntime==1.31.1`, found
+//! These tests need the ONNX Runtime library (`python3 -m pip install --no-deps onnxruntime==1.31.1`, found
 //! through `python3`, or `ORT_DYLIB_PATH`); without it they FAIL with that hint, on purpose.
 #![cfg(feature = "onnx")]
 
@@ -418,7 +418,7 @@ fn a_missing_library_is_named_with_the_setup_command() {
         "{message}"
     );
     assert!(
-        message.contains("python3 -m pip install onnxruntime==1.31.1"),
+        message.contains("python3 -m pip install --no-deps onnxruntime==1.31.1"),
         "{message}"
     );
 }

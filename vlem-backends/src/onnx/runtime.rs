@@ -20,8 +20,9 @@ use ort::value::{Outlet, Tensor, TensorElementType, TensorRef, ValueType};
 use crate::error::BackendError;
 
 /// How to get the ONNX Runtime library, for the messages that say it is missing.
-pub const ORT_INSTALL_HINT: &str = "install it with `python3 -m pip install onnxruntime==1.31.1` \
-     (found automatically through `python3`), or set `[encoder] library = \"/path/to/\
+pub const ORT_INSTALL_HINT: &str = "install it with `python3 -m pip install --no-deps \
+     onnxruntime==1.31.1` (found automatically through `python3`, also with `pip install --target \
+     DIR` and DIR on PYTHONPATH), or set `[encoder] library = \"/path/to/\
      libonnxruntime.so\"` or the environment variable ORT_DYLIB_PATH (ONNX Runtime 1.31 or newer)";
 
 /// The environment variable naming the library file (the one `ort` itself reads).
@@ -432,7 +433,7 @@ mod tests {
                 "encoder `onnx`: the ONNX Runtime shared library was not found (looked: \
                  [encoder] library: not set; ORT_DYLIB_PATH: not set; Python package \
                  onnxruntime: not installed for python3); install it with \
-                 `python3 -m pip install onnxruntime==1.31.1`"
+                 `python3 -m pip install --no-deps onnxruntime==1.31.1`"
             ),
             "{message}"
         );
