@@ -33,8 +33,8 @@ pub fn write_atomically(path: &Path, bytes: &[u8]) -> Result<()> {
 }
 
 /// Replaces `path` with what `write` writes (and syncs) into a fresh temporary file in the same
-/// folder: the temporary file is renamed over `path` and the folder synced, or removed when
-/// anything fails, so readers see the old file or the new one. `fallback_name` names the
+/// folder (created first when missing): the temporary file is renamed over `path` and the folder
+/// synced, or removed when anything fails, so readers see the old file or the new one. `fallback_name` names the
 /// temporary file when `path` has no file name. The one way every file of vlem is written whole,
 /// the map file included.
 pub(crate) fn replace_file<T>(
@@ -52,6 +52,9 @@ pub(crate) fn replace_file<T>(
         || fallback_name.to_owned(),
         |n| n.to_string_lossy().into_owned(),
     );
+    // A save into a folder that does not exist yet creates it, as `vlem run --out` does (the
+    // error used to name the temporary file instead of the missing folder).
+    std::fs::create_dir_all(&dir).map_err(|e| CoreError::io(&dir, e))?;
     remove_stale_temp_files(&dir, &file_name);
     let (tmp, file) = create_temp_file(&dir, &file_name)?;
     let result = write(&tmp, file).and_then(|out| {
@@ -277,9 +280,20 @@ mod tests {
     }
 
     #[test]
-    fn an_unwritable_folder_names_the_file() {
-        let err = write_atomically(Path::new("/nonexistent-vlem-dir/x.json"), b"x").unwrap_err();
-        assert!(err.to_string().contains("nonexistent-vlem-dir"), "{err}");
+    fn a_missing_folder_is_created_and_one_that_cannot_be_is_named() {
+        let dir = tempfile::tempdir().unwrap();
+        let nested = dir.path().join("out/run 1/map.json");
+        write_atomically(&nested, b"{}").unwrap();
+        assert_eq!(std::fs::read(&nested).unwrap(), b"{}");
+        // A file where a folder would have to be: the error names that folder.
+        let blocker = dir.path().join("file");
+        std::fs::write(&blocker, b"x").unwrap();
+        let err = write_atomically(&blocker.join("sub/x.json"), b"x").unwrap_err();
+        assert!(
+            err.to_string()
+                .starts_with(&blocker.join("sub").display().to_string()),
+            "{err}"
+        );
     }
 
     #[test]

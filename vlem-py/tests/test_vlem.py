@@ -73,7 +73,8 @@ def test_a_run_gives_numpy_arrays_of_the_documented_dtypes():
 def test_a_saved_map_answers_as_the_vlem_command_does(tmp_path):
     pipeline = vlem.Pipeline(DEMO)
     pipeline.run(max_frames=6)
-    path = tmp_path / "map.vlem"
+    # A folder that does not exist yet is created, as `vlem run --out` creates its own.
+    path = tmp_path / "out" / "run" / "map.vlem"
     assert pipeline.map.save(path) == len(pipeline.map)
     loaded = vlem.Map.load(path)
     assert len(loaded) == len(pipeline.map) and loaded.frames_integrated == 6
