@@ -145,6 +145,10 @@ fn a_rigidly_moved_copy_has_no_error_and_its_transform_is_recovered() {
         }
     }
     assert_eq!(num(&report, "/ate/alignment/scale"), 1.0);
+    // The dataset folder as the reference: its trajectory file is found as the reader finds it.
+    let (_, by_folder) = eval(&estimate, reference_log().parent().unwrap(), &[]);
+    assert_eq!(by_folder["reference"]["path"], report["reference"]["path"]);
+    assert_eq!(by_folder["ate"], report["ate"]);
     assert_row_matches(&stdout, "ATE (m)", &report, "/ate/position_m");
     assert_row_matches(&stdout, "RPE trans (m/1f)", &report, "/rpe/translation_m");
     assert_row_matches(&stdout, "RPE rot (deg/1f)", &report, "/rpe/rotation_deg");

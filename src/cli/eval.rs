@@ -147,7 +147,9 @@ pub struct TrajectoryArgs {
     /// The estimated trajectory (TUM or .log).
     #[arg(long)]
     estimate: PathBuf,
-    /// The reference ("ground truth") trajectory (TUM or .log).
+    /// The reference ("ground truth") trajectory (TUM or .log), or a dataset folder, whose
+    /// trajectory file is found as its reader finds it (trajectory.log or the folder's one .log,
+    /// groundtruth.txt, traj.txt).
     #[arg(long)]
     reference: PathBuf,
     /// RPE frame step: pose pairs (k, k + delta) of the associated poses.
@@ -175,9 +177,14 @@ pub fn execute(command: EvalCommand) -> Result<()> {
 }
 
 fn evaluate_trajectory(args: &TrajectoryArgs) -> Result<()> {
+    let reference = if args.reference.is_dir() {
+        vlem_datasets::trajectory_file(&args.reference)?
+    } else {
+        args.reference.clone()
+    };
     let report = report::evaluate_trajectory(
         &args.estimate,
-        &args.reference,
+        &reference,
         &TrajectoryOptions {
             delta: args.delta,
             max_time_diff: args.max_time_diff,

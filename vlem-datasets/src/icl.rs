@@ -219,7 +219,7 @@ fn find_intrinsics(dir: &Path, config: &DatasetConfig) -> Result<PathBuf> {
 
 /// The trajectory file, if any: `[dataset] trajectory`, else `trajectory.log`, else the folder's
 /// only `.log` file.
-fn find_trajectory(dir: &Path, config: &DatasetConfig) -> Result<Option<PathBuf>> {
+pub(crate) fn find_trajectory(dir: &Path, config: &DatasetConfig) -> Result<Option<PathBuf>> {
     if let Some(path) = &config.trajectory {
         let path = dir.join(path);
         require_file(&path, || "set by [dataset] trajectory".to_owned())?;

@@ -209,6 +209,53 @@ pub fn open(config: &DatasetConfig, dir: &Path) -> Result<Box<dyn FrameSource>> 
     })
 }
 
+/// The trajectory file of the dataset folder `dir`, found as its reader finds it: an ICL-NUIM or
+/// Redwood folder's `trajectory.log` (else its only `.log` file), a TUM folder's
+/// `groundtruth.txt`, a Replica folder's `traj.txt`. For `vlem eval trajectory --reference DIR`
+/// and the like, so that a user need not know the file's name.
+///
+/// # Errors
+/// [`DatasetError::MissingFile`] when the folder has no trajectory (naming what was looked for),
+/// [`DatasetError::Ambiguous`] for several `.log` files, and [`DatasetError::UnknownLayout`] or
+/// [`DatasetError::BadConfig`] for layouts without one trajectory file (ScanNet keeps a pose per
+/// frame, bags and the synthetic scene none as a file).
+pub fn trajectory_file(dir: &Path) -> Result<std::path::PathBuf> {
+    let existing = |name: &str, hint: &str| {
+        let path = dir.join(name);
+        if path.is_file() {
+            Ok(path)
+        } else {
+            Err(DatasetError::MissingFile {
+                path,
+                hint: hint.to_owned(),
+            })
+        }
+    };
+    match detect_kind(dir)? {
+        DatasetKind::Tum => existing("groundtruth.txt", "a TUM RGB-D folder's trajectory"),
+        DatasetKind::Replica => existing("traj.txt", "a Replica folder's trajectory"),
+        DatasetKind::Icl | DatasetKind::Auto => {
+            icl::find_trajectory(dir, &DatasetConfig::default())?.ok_or_else(|| {
+                DatasetError::MissingFile {
+                    path: dir.join("trajectory.log"),
+                    hint:
+                        "an ICL-NUIM/Redwood folder's trajectory: trajectory.log or one .log file"
+                            .to_owned(),
+                }
+            })
+        }
+        DatasetKind::Scannet | DatasetKind::Rosbag2 | DatasetKind::Synthetic => {
+            Err(DatasetError::BadConfig {
+                path: dir.to_path_buf(),
+                message: "this dataset keeps no single trajectory file (ScanNet has a pose file \
+                          per frame, a bag its poses in messages): pass a trajectory file (TUM \
+                          or .log) itself"
+                    .to_owned(),
+            })
+        }
+    }
+}
+
 /// The reader of a ROS 2 bag, where the `rosbag2` feature is built.
 #[cfg(feature = "rosbag2")]
 fn open_bag(config: &DatasetConfig, path: &Path) -> Result<Box<dyn FrameSource>> {
