@@ -349,11 +349,33 @@ fn query_clusters_and_grasps() {
         "{plugins}"
     );
 
-    // The colour-names encoder cannot embed the default baseline "object": the error says how to
-    // choose another.
-    let err = fails(&["query", "--map", map, "--segmenter", "cluster", "white"]);
+    // The default baseline "object" is each encoder's generic text: "grey" for colour-names, which
+    // has no word for objects, so the defaults work; the answer is that of `--baseline grey`.
+    let defaults = ok(&["query", "--map", map, "--segmenter", "cluster", "white"]);
+    let grey = ok(&[
+        "query",
+        "--map",
+        map,
+        "--segmenter",
+        "cluster",
+        "--baseline",
+        "grey",
+        "white",
+    ]);
+    assert_eq!(defaults, grey);
+    // A baseline it cannot embed: the error suggests one it can.
+    let err = fails(&[
+        "query",
+        "--map",
+        map,
+        "--segmenter",
+        "cluster",
+        "--baseline",
+        "chair",
+        "white",
+    ]);
     assert!(
-        err.contains("cannot embed the query \"object\"") && err.contains("--baseline"),
+        err.contains("cannot embed the query \"chair\"") && err.contains("e.g. to \"grey\""),
         "{err}"
     );
     let err = fails(&["query", "--map", map, "--segmenter", "kmeans", "white"]);

@@ -27,7 +27,7 @@ pub use registry::{
 };
 pub use stage::StageKind;
 pub use traits::embedding_map::{EmbeddingMap, IntegrationStats, MapBudget, Observation};
-pub use traits::encoder::Encoder;
+pub use traits::encoder::{Encoder, GENERIC_TEXT};
 pub use traits::frame_source::FrameSource;
 pub use traits::observer::{NoObserver, RunObserver};
 pub use traits::region_proposer::RegionProposer;

@@ -151,11 +151,18 @@ pub fn embed_texts(
     let baseline = segmenter
         .baseline_query()
         .map(|text| {
+            // The generic baseline is each encoder's own word for "anything".
+            let text = if text == vlem_core::GENERIC_TEXT {
+                encoder.generic_text()
+            } else {
+                text
+            };
             encoder
                 .encode_text(text)
                 .map_err(|source| QueryError::Baseline {
                     text: text.to_owned(),
                     segmenter: segmenter.name(),
+                    generic: encoder.generic_text().to_owned(),
                     source,
                 })
         })

@@ -86,13 +86,15 @@ pub enum QueryError {
     },
     /// The baseline text of a segmenter the encoder could not embed.
     #[error(
-        "cannot embed the query \"{text}\", the baseline of segmenter `{segmenter}` (set its `baseline` parameter; `vlem query --baseline TEXT`): {source}"
+        "cannot embed the query \"{text}\", the baseline of segmenter `{segmenter}` (set its `baseline` parameter, e.g. to \"{generic}\", which the encoder can embed; `vlem query --baseline TEXT`): {source}"
     )]
     Baseline {
         /// The baseline text.
         text: String,
         /// The segmenter's name.
         segmenter: &'static str,
+        /// The encoder's generic text, which it can embed.
+        generic: String,
         /// Why it could not be embedded.
         source: CoreError,
     },

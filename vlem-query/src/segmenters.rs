@@ -106,7 +106,7 @@ fn mean_score(s: &[f32], indices: &[usize]) -> f32 {
 }
 
 fn default_baseline() -> String {
-    "object".into()
+    vlem_core::GENERIC_TEXT.into()
 }
 
 /// `[query.segmenter] kind = "argmax"`: the paper's partition. Every point goes to the query with

@@ -431,6 +431,12 @@ impl Encoder for ColourNamesEncoder {
         }
         Ok(counts.iter().map(|c| c / norm).collect())
     }
+
+    /// "grey": the colour of no colour in particular, which the baseline of `argmax` and
+    /// `cluster` compares each colour query against ("object" is no colour word).
+    fn generic_text(&self) -> &str {
+        "grey"
+    }
 }
 
 /// The component of a (lower-case) colour word or synonym; `None` for other words.

@@ -10,6 +10,11 @@ use crate::embeddings::PixelEmbeddings;
 use crate::error::{CoreError, Result};
 use crate::types::{Frame, Region, RgbImage};
 
+/// The text that describes anything: the baseline that the `argmax` and `cluster` segmenters
+/// compare every query against unless one is configured. An encoder that cannot embed it names
+/// its own in [`Encoder::generic_text`], which queries then use in its place.
+pub const GENERIC_TEXT: &str = "object";
+
 /// Maps images (and, where supported, text) into one embedding space of dimension [`Encoder::dim`].
 pub trait Encoder: Send + Sync {
     /// The registered name.
@@ -55,5 +60,12 @@ pub trait Encoder: Send + Sync {
             implementation: format!("encoder `{}`", self.name()),
             capability: "text encoding",
         })
+    }
+
+    /// This encoder's text for [`GENERIC_TEXT`] (the default baseline): one it can embed that
+    /// describes anything. The default is [`GENERIC_TEXT`] itself; an encoder whose vocabulary
+    /// lacks "object" (the colour-names encoder knows colour words only) names its own.
+    fn generic_text(&self) -> &str {
+        GENERIC_TEXT
     }
 }
