@@ -163,7 +163,7 @@ pub fn embed_texts(
                     text: text.to_owned(),
                     segmenter: segmenter.name(),
                     generic: encoder.generic_text().to_owned(),
-                    source,
+                    source: Box::new(source),
                 })
         })
         .transpose()?;

@@ -96,7 +96,7 @@ pub enum QueryError {
         /// The encoder's generic text, which it can embed.
         generic: String,
         /// Why it could not be embedded.
-        source: CoreError,
+        source: Box<CoreError>,
     },
     /// No texts were given.
     #[error("no query texts given")]
