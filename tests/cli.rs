@@ -253,7 +253,22 @@ fn config_errors_name_the_problem() {
         out,
     ]);
     assert!(
-        err.contains("dataset folder /nonexistent/vlem-data does not exist"),
+        err.contains(
+            "dataset folder /nonexistent/vlem-data does not exist (given with --dataset; check \
+             the path)"
+        ),
+        "{err}"
+    );
+    let other = tmp.path().join("other");
+    std::fs::create_dir_all(&other).unwrap();
+    let in_config = write_config(
+        &other,
+        "[dataset]\npath = \"nowhere\"\n[map]\nkind = \"point-cloud\"\n",
+    );
+    let err = fails(&["run", "--config", &in_config, "--out", out]);
+    assert!(
+        err.contains("does not exist (from [dataset] path in the config")
+            && err.contains("nowhere"),
         "{err}"
     );
     let err = fails(&["run", "--config", &config, "--out", out]);

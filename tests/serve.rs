@@ -661,6 +661,24 @@ fn serving_refuses_non_loopback_addresses_and_connect_names_the_server() {
         "0.0.0.0:8765",
     ]);
     assert!(out.contains("loopback only"), "{out}");
+    // A port another program holds: the error says what to do, and the run leaves no empty
+    // output folder behind.
+    let taken = std::net::TcpListener::bind("127.0.0.1:0").unwrap();
+    let fresh = dir.path().join("fresh");
+    let out = common::fails(&[
+        "run",
+        "--config",
+        "configs/demo.toml",
+        "--out",
+        fresh.to_str().unwrap(),
+        "--serve",
+        &taken.local_addr().unwrap().to_string(),
+    ]);
+    assert!(
+        out.contains("another program listens on that port") && out.contains("port 0"),
+        "{out}"
+    );
+    assert!(!fresh.exists(), "a failed start leaves no output folder");
     // Nothing listens on this port (bound and released just now).
     let port = std::net::TcpListener::bind("127.0.0.1:0")
         .unwrap()

@@ -159,30 +159,44 @@ fn run(mut config: Config, ctx: BuildContext, out: &Path, options: &RunOptions<'
     }
     let mut source = vlem_datasets::open(&config.dataset, &dataset_dir)?;
     // Before mapping, so an unwritable output folder, recording or port fails now rather than
-    // after a long run.
+    // after a long run; a start that fails leaves no empty output folder behind.
+    let created = !out.exists();
     std::fs::create_dir_all(out).with_context(|| format!("cannot create {}", out.display()))?;
-    let recorder = options.rerun.open()?;
-    let recording = recorder.as_ref().map(RunRecording::new);
     let live = pipeline.live();
-    let server = options
-        .serve
-        .serve
-        .as_deref()
-        .map(|address| {
-            QueryServer::start(
-                address,
-                live.clone(),
-                ServeOptions {
-                    token: options.serve.serve_token.clone(),
-                    limits: RequestLimits {
-                        max_texts: options.serve.serve_max_texts,
-                        max_text_bytes: options.serve.serve_max_text_bytes,
+    let started = (|| -> Result<_> {
+        let recorder = options.rerun.open()?;
+        let server = options
+            .serve
+            .serve
+            .as_deref()
+            .map(|address| {
+                QueryServer::start(
+                    address,
+                    live.clone(),
+                    ServeOptions {
+                        token: options.serve.serve_token.clone(),
+                        limits: RequestLimits {
+                            max_texts: options.serve.serve_max_texts,
+                            max_text_bytes: options.serve.serve_max_text_bytes,
+                        },
+                        ..ServeOptions::new(out.to_path_buf(), ctx.clone())
                     },
-                    ..ServeOptions::new(out.to_path_buf(), ctx.clone())
-                },
-            )
-        })
-        .transpose()?;
+                )
+            })
+            .transpose()?;
+        Ok((recorder, server))
+    })();
+    let (recorder, server) = match started {
+        Ok(started) => started,
+        Err(e) => {
+            if created {
+                // Only an empty folder goes: remove_dir refuses anything else.
+                let _ = std::fs::remove_dir(out);
+            }
+            return Err(e);
+        }
+    };
+    let recording = recorder.as_ref().map(RunRecording::new);
     let total = source.len();
     eprintln!(
         "vlem: {} frames from {}; tracker `{}`, encoder `{}`, map `{}`",

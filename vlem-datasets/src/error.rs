@@ -228,10 +228,12 @@ pub enum DatasetError {
     #[error("no dataset: pass --dataset DIR or set [dataset] path in the config")]
     NoFolder,
     /// A dataset folder that does not exist.
-    #[error("dataset folder {} does not exist (pass --dataset DIR to use another one)", path.display())]
+    #[error("dataset folder {} does not exist ({hint})", path.display())]
     NoSuchFolder {
         /// The folder.
         path: PathBuf,
+        /// Where the path came from and how to give another.
+        hint: String,
     },
     /// A `[dataset.synthetic]` value (or a `[dataset]` setting) the synthetic scene cannot use.
     #[error("[dataset.synthetic] {key}: {message}")]

@@ -150,16 +150,23 @@ pub fn dataset_folder(
     dataset: Option<&Path>,
 ) -> Result<std::path::PathBuf> {
     let synthetic = config.dataset.kind == DatasetKind::Synthetic;
-    let dir = match (dataset, &config.dataset.path) {
-        (Some(dir), _) => dir.to_path_buf(),
-        (None, Some(path)) => ctx.resolve(path),
-        (None, None) if synthetic => ctx.config_dir.clone(),
+    let (dir, hint) = match (dataset, &config.dataset.path) {
+        (Some(dir), _) => (dir.to_path_buf(), "given with --dataset; check the path"),
+        (None, Some(path)) => (
+            ctx.resolve(path),
+            "from [dataset] path in the config, relative to the config's folder; pass --dataset \
+             DIR to use another one",
+        ),
+        (None, None) if synthetic => (ctx.config_dir.clone(), ""),
         (None, None) => return Err(DatasetError::NoFolder),
     };
     // A bag may be one storage file rather than a folder.
     let bag_file = dir.is_file() && looks_like_bag(&dir);
     if !synthetic && !dir.is_dir() && !bag_file {
-        return Err(DatasetError::NoSuchFolder { path: dir });
+        return Err(DatasetError::NoSuchFolder {
+            path: dir,
+            hint: hint.to_owned(),
+        });
     }
     Ok(dir)
 }

@@ -171,7 +171,14 @@ impl QueryServer {
         }
         let listen_error = |e: std::io::Error| ServerError::Listen {
             address: address.into(),
-            reason: e.to_string(),
+            reason: if e.kind() == std::io::ErrorKind::AddrInUse {
+                format!(
+                    "{e}: another program listens on that port; choose another, or port 0 for a \
+                     free one (the address is printed when serving starts)"
+                )
+            } else {
+                e.to_string()
+            },
         };
         let listener = TcpListener::bind(socket).map_err(listen_error)?;
         let bound = listener.local_addr().map_err(listen_error)?;
