@@ -89,7 +89,13 @@ fn demo_writes_all_outputs_and_its_map_answers_queries() {
     assert_eq!(stats["map"]["dim"], 11);
     let points = stats["map"]["points"].as_u64().unwrap();
     assert!(points > 100_000 && points <= 1_000_000, "{points} points");
-    assert!(stats["map"]["bytes"].as_u64().unwrap() >= points * (12 + 3 + 44));
+    assert!(stats["map"]["memory_bytes"].as_u64().unwrap() >= points * (12 + 3 + 44));
+    // The map file's size, apart from the memory the map takes.
+    let file_bytes = stats["map"]["file_bytes"].as_u64().unwrap();
+    assert_eq!(
+        file_bytes,
+        std::fs::metadata(out_dir.join("map.vlem")).unwrap().len()
+    );
     for stage in ["load", "track", "encode", "integrate"] {
         assert!(stats["mean_ms"][stage].as_f64().unwrap() > 0.0, "{stage}");
     }

@@ -443,9 +443,11 @@ fn write_outputs(
         vlem_datasets::trajectory::write_tum(&out.join("reference.tum"), &reference)?;
     }
     let live = pipeline.live();
-    if live.has_map() {
-        live.save(&out.join("map.vlem"))?;
-    }
+    let saved = if live.has_map() {
+        Some(live.save(&out.join("map.vlem"))?)
+    } else {
+        None
+    };
     let map = pipeline.map();
     let mut stats = report.stats(
         config.pipeline.mode,
@@ -453,6 +455,9 @@ fn write_outputs(
         vlem_core::files::peak_resident_bytes(),
     );
     stats.peak_device_bytes = peak_device_bytes;
+    if let (Some(map_stats), Some(saved)) = (&mut stats.map, saved) {
+        map_stats.file_bytes = Some(saved.bytes);
+    }
     let json = serde_json::to_string(&stats).context("cannot encode stats.json")?;
     output::write_atomically(&out.join("stats.json"), json.as_bytes())?;
     print_summary(report, map.as_deref(), out);

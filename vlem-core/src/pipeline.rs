@@ -198,10 +198,14 @@ pub struct MapStats {
     pub points: usize,
     /// Embedding dimension.
     pub dim: usize,
-    /// Host bytes of map storage.
-    pub bytes: usize,
-    /// Device bytes of map storage (`[map] device = "cuda"`), 0 for a map on the host.
+    /// Host memory of the map's storage, in bytes (its in-memory size: index, buffers, spare
+    /// capacity; not the size of its map file).
+    pub memory_bytes: usize,
+    /// Device memory of the map's storage (`[map] device = "cuda"`), 0 for a map on the host.
     pub device_bytes: usize,
+    /// The size of the map file the run saved (`map.vlem`), where it saved one.
+    #[serde(skip_serializing_if = "Option::is_none")]
+    pub file_bytes: Option<u64>,
 }
 
 impl MapStats {
@@ -211,8 +215,9 @@ impl MapStats {
             kind: map.name().into(),
             points: map.len(),
             dim: map.dim(),
-            bytes: map.memory_bytes(),
+            memory_bytes: map.memory_bytes(),
             device_bytes: map.device_memory_bytes(),
+            file_bytes: None,
         }
     }
 }

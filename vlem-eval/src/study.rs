@@ -511,7 +511,7 @@ fn fill_from_stats(result: &mut CellResult, path: &Path) -> Result<()> {
     result.frames = stats["frames"]["processed"].as_u64();
     result.peak_resident_bytes = stats["peak_resident_bytes"].as_u64();
     result.map_points = stats["map"]["points"].as_u64();
-    result.map_bytes = stats["map"]["bytes"].as_u64();
+    result.map_bytes = stats["map"]["memory_bytes"].as_u64();
     Ok(())
 }
 
