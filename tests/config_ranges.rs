@@ -94,45 +94,48 @@ fn out_of_range_stage_settings_are_refused_naming_key_range_and_value() {
     }
 }
 
+/// The error of building the stage `params` (a TOML section) with `build`.
+fn stage_error<T>(
+    params: &str,
+    build: impl FnOnce(&vlem_core::StageConfig) -> vlem_core::Result<T>,
+) -> String {
+    let stage: vlem_core::StageConfig = toml::from_str(params).unwrap();
+    match build(&stage) {
+        Ok(_) => panic!("built, though out of range: {params}"),
+        Err(e) => vlem_core::message_chain(&e),
+    }
+}
+
 #[test]
 fn out_of_range_proposer_and_segmenter_settings_are_refused() {
     let registry = Registry::global().unwrap();
-    for (params, expected) in [
+    let proposer = |stage: &vlem_core::StageConfig| registry.build_proposer(stage, &context());
+    let segmenter = |stage: &vlem_core::StageConfig| registry.build_segmenter(stage, &context());
+    for (error, expected) in [
         (
-            "kind = \"graph\"\nk = 1e30\n",
+            stage_error("kind = \"graph\"\nk = 1e30\n", proposer),
             "k must lie in 0–1000000, got 1e30",
         ),
         (
-            "kind = \"graph\"\nmin_size = 4000000000\n",
+            stage_error("kind = \"graph\"\nmin_size = 4000000000\n", proposer),
             "min_size must lie in 0–16777216 pixels",
         ),
-    ] {
-        let stage: vlem_core::StageConfig = toml::from_str(params).unwrap();
-        let error = match registry.build_proposer(&stage, &context()) {
-            Ok(_) => panic!("built, though out of range: {params}"),
-            Err(e) => vlem_core::message_chain(&e),
-        };
-        assert!(error.contains(expected), "{params}\n→ {error}");
-    }
-    for (params, expected) in [
         (
-            "kind = \"cluster\"\ncomponents = 1000000\n",
+            stage_error("kind = \"cluster\"\ncomponents = 1000000\n", segmenter),
             "components` must lie in 1–64, got 1000000",
         ),
         (
-            "kind = \"cluster\"\neps = 1e-30\n",
+            stage_error("kind = \"cluster\"\neps = 1e-30\n", segmenter),
             "must lie in 1e-4–10 m, got 1e-30",
         ),
         (
-            "kind = \"cluster\"\nmin_points = 9223372036854775807\n",
+            stage_error(
+                "kind = \"cluster\"\nmin_points = 9223372036854775807\n",
+                segmenter,
+            ),
             "must lie in 1–1000000 points",
         ),
     ] {
-        let stage: vlem_core::StageConfig = toml::from_str(params).unwrap();
-        let error = match registry.build_segmenter(&stage, &context()) {
-            Ok(_) => panic!("built, though out of range: {params}"),
-            Err(e) => vlem_core::message_chain(&e),
-        };
-        assert!(error.contains(expected), "{params}\n→ {error}");
+        assert!(error.contains(expected), "{error}");
     }
 }

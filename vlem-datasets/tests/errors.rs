@@ -520,3 +520,29 @@ fn symlink_loops_dangling_links_and_fifos_are_named() {
         assert!(err.contains("not a regular file"), "{err}");
     }
 }
+
+#[test]
+fn a_dataset_folders_trajectory_file_is_found_as_its_reader_finds_it() {
+    let tmp = tempfile::tempdir().unwrap();
+    common::write_icl(tmp.path(), 0, 2, true);
+    assert_eq!(
+        vlem_datasets::trajectory_file(tmp.path()).unwrap(),
+        tmp.path().join("trajectory.log")
+    );
+    // Another name: the folder's one .log file.
+    std::fs::rename(
+        tmp.path().join("trajectory.log"),
+        tmp.path().join("estimate.log"),
+    )
+    .unwrap();
+    assert_eq!(
+        vlem_datasets::trajectory_file(tmp.path()).unwrap(),
+        tmp.path().join("estimate.log")
+    );
+    // None: the error names what was looked for.
+    std::fs::remove_file(tmp.path().join("estimate.log")).unwrap();
+    let err = vlem_datasets::trajectory_file(tmp.path())
+        .unwrap_err()
+        .to_string();
+    assert!(err.contains("trajectory.log"), "{err}");
+}
