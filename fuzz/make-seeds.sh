@@ -16,7 +16,7 @@ done
 
 c=corpus
 rm -rf "$c"
-mkdir -p "$c"/{depth_image,colour_image,open3d_intrinsics,redwood_log,tum_trajectory,association_lists,scannet_text,config_toml,map_file,rosbag2_bag,rosbag2_messages}
+mkdir -p "$c"/{depth_image,colour_image,open3d_intrinsics,redwood_log,tum_trajectory,association_lists,scannet_text,config_toml,map_file,rosbag2_bag,rosbag2_messages,http_request_head}
 
 # Images are cut down by seedgen/ (a small Rust tool on the `image` crate, the decoder vlem uses):
 # `sample:WxH` is nearest-neighbour, so depth values stay real depths.
@@ -143,6 +143,16 @@ cp ../configs/*.toml "$c/config_toml/"
 printf '[pipeline]\nmode = "real-time"\nframe_rate = 1e-300\nqueue_capacity = 0\n' >"$c/config_toml/extreme_pipeline.toml"
 printf '[dataset]\nkind = "synthetic"\n[dataset.synthetic]\nwidth = 0\nroom = [nan, inf, -1]\n' >"$c/config_toml/synthetic_bad_values.toml"
 printf '[map]\nkind = "point-cloud"\nnested = { a = [[1, 2], [3.5]], b = { c = "d" } }\n' >"$c/config_toml/nested_params.toml"
+
+# Request heads as curl, a browser and a hostile client send them to the query server.
+h=$c/http_request_head
+printf 'GET /status HTTP/1.1\r\nHost: 127.0.0.1:8765\r\nUser-Agent: curl/8.5.0\r\nAccept: */*\r\n\r\n' >"$h/curl_status"
+printf 'POST /query HTTP/1.1\r\nHost: localhost:8765\r\nContent-Type: application/json\r\nContent-Length: 18\r\nExpect: 100-continue\r\n\r\n{"texts": ["red"]}' >"$h/post_query"
+printf 'GET /heatmap.ply?text=coffee+machine&grasp=1 HTTP/1.1\r\nHost: [::1]:8765\r\nOrigin: http://localhost:8765\r\nConnection: close\r\n\r\n' >"$h/heatmap_origin"
+printf 'GET / HTTP/2.0\r\n\r\n' >"$h/http2"
+printf 'PRI * HTTP/2.0\r\n\r\nSM\r\n\r\n' >"$h/h2_preface"
+printf 'GET /status HTTP/1.0\r\nX: a\r\n folded\r\n\r\n' >"$h/http10_folded"
+printf 'POST /snapshot HTTP/1.1\r\nTransfer-Encoding: chunked\r\nContent-Length: 3\r\n\r\n0\r\n\r\n' >"$h/chunked_and_length"
 
 du -sh "$c"/*
 

@@ -245,11 +245,15 @@ fn query_texts_the_encoder_cannot_embed_fail_at_start_up() {
     );
     // Refused before mapping: no output of a run.
     assert!(!tmp.path().join("out/stats.json").exists());
-    // The segmenter's baseline too ("object" is no colour).
+    // The segmenter's baseline too ("chair" is no colour; the default, "object", is each encoder's
+    // generic text: "grey" for this one).
     let err = run_fails(
         tmp.path(),
         &data,
-        "[query]\ntexts = [\"red\"]\n[query.segmenter]\nkind = \"argmax\"",
+        "[query]\ntexts = [\"red\"]\n[query.segmenter]\nkind = \"argmax\"\nbaseline = \"chair\"",
     );
-    assert!(err.contains("\"object\""), "{err}");
+    assert!(
+        err.contains("\"chair\"") && err.contains("e.g. to \"grey\""),
+        "{err}"
+    );
 }

@@ -157,85 +157,13 @@ impl Connection {
         }
     }
 
-    /// The head at the start of the buffer, if it is complete.
+    /// The head at the start of the buffer, if it is complete (taken off the buffer).
     fn parse_head(&mut self) -> Result<Option<Head>, ReadError> {
-        if self.buffer.is_empty() {
+        let Some((head, length)) = parse_head(&self.buffer, &self.limits)? else {
             return Ok(None);
-        }
-        let mut headers = vec![httparse::EMPTY_HEADER; self.limits.headers];
-        let mut request = httparse::Request::new(&mut headers);
-        let length = match request.parse(&self.buffer) {
-            Ok(httparse::Status::Complete(length)) => length,
-            Ok(httparse::Status::Partial) => {
-                return if self.buffer.len() < self.limits.head_bytes {
-                    Ok(None)
-                } else if !self.buffer[..self.limits.head_bytes].contains(&b'\n') {
-                    Err(self.target_too_long(format!("over {}", self.limits.head_bytes)))
-                } else {
-                    Err(self.head_too_large())
-                };
-            }
-            Err(httparse::Error::Version) => {
-                return Err(refuse(
-                    505,
-                    "this server speaks HTTP/1.1 (and 1.0) only; send the request as HTTP/1.1",
-                ));
-            }
-            Err(httparse::Error::TooManyHeaders) => return Err(self.head_too_large()),
-            Err(e) => return Err(refuse(400, format!("malformed HTTP request: {e}"))),
-        };
-        if length > self.limits.head_bytes {
-            return Err(self.head_too_large());
-        }
-        let target = request.path.unwrap_or("/");
-        if target.len() > self.limits.url_bytes {
-            return Err(self.target_too_long(target.len().to_string()));
-        }
-        let http_1_1 = request.version == Some(1);
-        let headers: Vec<(String, String)> = request
-            .headers
-            .iter()
-            .map(|h| {
-                (
-                    h.name.to_owned(),
-                    String::from_utf8_lossy(h.value).into_owned(),
-                )
-            })
-            .collect();
-        let close = headers
-            .iter()
-            .filter(|(n, _)| n.eq_ignore_ascii_case("Connection"))
-            .any(|(_, v)| v.split(',').any(|t| t.trim().eq_ignore_ascii_case("close")));
-        let head = Head {
-            method: request.method.unwrap_or("").to_owned(),
-            target: target.to_owned(),
-            headers,
-            keep_alive: http_1_1 && !close,
         };
         self.buffer.drain(..length);
         Ok(Some(head))
-    }
-
-    /// 414 for a target of `bytes` (a count, or "over N" when the line did not end).
-    fn target_too_long(&self, bytes: String) -> ReadError {
-        refuse(
-            414,
-            format!(
-                "a request target of {bytes} bytes; the limit is {} bytes (send long texts in a \
-                 POST /query body)",
-                self.limits.url_bytes
-            ),
-        )
-    }
-
-    fn head_too_large(&self) -> ReadError {
-        refuse(
-            431,
-            format!(
-                "the request's headers exceed the limit of {} bytes or {} headers",
-                self.limits.head_bytes, self.limits.headers
-            ),
-        )
     }
 
     /// Reads the body `head` announces (empty when it announces none). Call it only for an
@@ -372,6 +300,93 @@ impl Connection {
             .set_write_timeout(Some(self.limits.write_stall))?;
         self.stream.write_all(bytes)
     }
+}
+
+/// The request head at the start of `buffer` and its length in bytes, if it is complete;
+/// the limits' refusals otherwise. Pure, so the fuzz target runs what a connection runs.
+pub(crate) fn parse_head(
+    buffer: &[u8],
+    limits: &Limits,
+) -> Result<Option<(Head, usize)>, ReadError> {
+    if buffer.is_empty() {
+        return Ok(None);
+    }
+    let mut headers = vec![httparse::EMPTY_HEADER; limits.headers];
+    let mut request = httparse::Request::new(&mut headers);
+    let length = match request.parse(&buffer) {
+        Ok(httparse::Status::Complete(length)) => length,
+        Ok(httparse::Status::Partial) => {
+            return if buffer.len() < limits.head_bytes {
+                Ok(None)
+            } else if !buffer[..limits.head_bytes].contains(&b'\n') {
+                Err(target_too_long(
+                    limits,
+                    format!("over {}", limits.head_bytes),
+                ))
+            } else {
+                Err(head_too_large(limits))
+            };
+        }
+        Err(httparse::Error::Version) => {
+            return Err(refuse(
+                505,
+                "this server speaks HTTP/1.1 (and 1.0) only; send the request as HTTP/1.1",
+            ));
+        }
+        Err(httparse::Error::TooManyHeaders) => return Err(head_too_large(limits)),
+        Err(e) => return Err(refuse(400, format!("malformed HTTP request: {e}"))),
+    };
+    if length > limits.head_bytes {
+        return Err(head_too_large(limits));
+    }
+    let target = request.path.unwrap_or("/");
+    if target.len() > limits.url_bytes {
+        return Err(target_too_long(limits, target.len().to_string()));
+    }
+    let http_1_1 = request.version == Some(1);
+    let headers: Vec<(String, String)> = request
+        .headers
+        .iter()
+        .map(|h| {
+            (
+                h.name.to_owned(),
+                String::from_utf8_lossy(h.value).into_owned(),
+            )
+        })
+        .collect();
+    let close = headers
+        .iter()
+        .filter(|(n, _)| n.eq_ignore_ascii_case("Connection"))
+        .any(|(_, v)| v.split(',').any(|t| t.trim().eq_ignore_ascii_case("close")));
+    let head = Head {
+        method: request.method.unwrap_or("").to_owned(),
+        target: target.to_owned(),
+        headers,
+        keep_alive: http_1_1 && !close,
+    };
+    Ok(Some((head, length)))
+}
+
+/// 414 for a target of `bytes` (a count, or "over N" when the line did not end).
+fn target_too_long(limits: &Limits, bytes: String) -> ReadError {
+    refuse(
+        414,
+        format!(
+            "a request target of {bytes} bytes; the limit is {} bytes (send long texts in a \
+             POST /query body)",
+            limits.url_bytes
+        ),
+    )
+}
+
+fn head_too_large(limits: &Limits) -> ReadError {
+    refuse(
+        431,
+        format!(
+            "the request's headers exceed the limit of {} bytes or {} headers",
+            limits.head_bytes, limits.headers
+        ),
+    )
 }
 
 enum Filled {

@@ -31,3 +31,21 @@ mod server;
 pub use client::Client;
 pub use error::ServerError;
 pub use server::{QueryServer, RequestLimits, ServeOptions};
+
+/// Entry points for `fuzz/` (not a public API: hidden and unstable).
+#[doc(hidden)]
+pub mod __fuzz {
+    /// Parses `bytes` as the start of a request, with the server's limits, as a connection does:
+    /// `Ok(Some(length))` for a complete head, `Ok(None)` for one that needs more bytes, and the
+    /// status a refusal would get.
+    ///
+    /// # Errors
+    /// The HTTP status of a refused head (400, 414, 431, 505).
+    pub fn request_head(bytes: &[u8]) -> Result<Option<usize>, u16> {
+        match crate::http::parse_head(bytes, &crate::http::Limits::SERVER) {
+            Ok(head) => Ok(head.map(|(_, length)| length)),
+            Err(crate::http::ReadError::Refuse { status, .. }) => Err(status),
+            Err(crate::http::ReadError::Closed) => Err(0),
+        }
+    }
+}
