@@ -313,7 +313,7 @@ pub(crate) fn parse_head(
     }
     let mut headers = vec![httparse::EMPTY_HEADER; limits.headers];
     let mut request = httparse::Request::new(&mut headers);
-    let length = match request.parse(&buffer) {
+    let length = match request.parse(buffer) {
         Ok(httparse::Status::Complete(length)) => length,
         Ok(httparse::Status::Partial) => {
             return if buffer.len() < limits.head_bytes {
