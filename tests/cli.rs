@@ -235,6 +235,8 @@ fn config_errors_name_the_problem() {
         err.contains("[map] kind = \"point-cloud\": unknown field `max_pionts`"),
         "{err}"
     );
+    // A stage's own keys are parsed by the stage; the error still names the file and the line.
+    assert!(err.contains("test.toml, line 3)"), "{err}");
 
     let err = run("[dataset]\nstrid = 2\n");
     assert!(

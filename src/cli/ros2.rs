@@ -37,8 +37,11 @@ pub fn execute(args: &Ros2Args) -> Result<()> {
     use vlem_core::pipeline::Pipeline;
 
     let (config, ctx) = vlem_core::load_config(&args.config)?;
-    let pipeline = Pipeline::from_config(&config, &ctx)?;
-    let segmenter = Registry::global()?.build_segmenter(&config.query.segmenter, &ctx)?;
+    let located = |e| vlem_core::config::with_config_line(e, &args.config);
+    let pipeline = Pipeline::from_config(&config, &ctx).map_err(located)?;
+    let segmenter = Registry::global()?
+        .build_segmenter(&config.query.segmenter, &ctx)
+        .map_err(located)?;
     let settings = config.ros2.clone().unwrap_or_default();
     let stop = Arc::new(AtomicBool::new(false));
     {

@@ -90,6 +90,8 @@ struct ServeArgs {
 
 /// Command-line choices of `vlem run` beyond the config.
 struct RunOptions<'a> {
+    /// The config file, for errors that name a line of it (none for the embedded demo config).
+    config_file: Option<&'a Path>,
     dataset: Option<&'a Path>,
     max_frames: Option<usize>,
     colour_model: bool,
@@ -108,6 +110,7 @@ pub fn execute(args: &RunArgs) -> Result<()> {
         ctx,
         &args.out,
         &RunOptions {
+            config_file: Some(&args.config),
             dataset: args.dataset.as_deref(),
             max_frames: args.max_frames,
             colour_model: !args.no_colour_model,
@@ -130,6 +133,7 @@ pub fn demo(args: &DemoArgs) -> Result<()> {
         ctx,
         &args.out,
         &RunOptions {
+            config_file: None,
             dataset: None,
             max_frames: None,
             colour_model: true,
@@ -144,9 +148,15 @@ fn run(mut config: Config, ctx: BuildContext, out: &Path, options: &RunOptions<'
     if options.max_frames.is_some() {
         config.dataset.max_frames = options.max_frames;
     }
-    let mut pipeline = Pipeline::from_config(&config, &ctx)?;
+    let located = |e| match options.config_file {
+        Some(path) => vlem_core::config::with_config_line(e, path),
+        None => e,
+    };
+    let mut pipeline = Pipeline::from_config(&config, &ctx).map_err(located)?;
     // Built before mapping so a bad [query.segmenter] fails at start-up, not after the run.
-    let segmenter = Registry::global()?.build_segmenter(&config.query.segmenter, &ctx)?;
+    let segmenter = Registry::global()?
+        .build_segmenter(&config.query.segmenter, &ctx)
+        .map_err(located)?;
     // The run's own queries (and the segmenter's baseline) are embedded now, so a text the
     // encoder cannot embed fails at start-up, not after an hour of mapping; the encoders keep
     // the embeddings for the queries after the run.

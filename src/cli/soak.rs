@@ -207,7 +207,8 @@ pub fn execute(args: &SoakArgs) -> Result<()> {
         .frames = frames;
     config.dataset.synthetic = synthetic;
 
-    let mut pipeline = Pipeline::from_config(&config, &ctx)?;
+    let mut pipeline = Pipeline::from_config(&config, &ctx)
+        .map_err(|e| vlem_core::config::with_config_line(e, path))?;
     let (budget_key, budget) = map_budget(&config, pipeline.map().as_deref(), path)?;
     let mut source = vlem_datasets::open(&config.dataset, &ctx.config_dir)?;
     std::fs::create_dir_all(&args.out)

@@ -96,6 +96,66 @@ impl Config {
     }
 }
 
+/// `error` with the config file and line of the key it names, where it is an unknown key of a
+/// stage's section (`[map] max_point = …`): the stage parses its own parameters from a table that
+/// no longer knows its lines, so the location is found again in the file the config came from.
+/// Other errors, and keys the file does not hold on a line of their own, come back unchanged.
+pub fn with_config_line(error: CoreError, path: &Path) -> CoreError {
+    let CoreError::InvalidParams {
+        section,
+        name,
+        message,
+    } = error
+    else {
+        return error;
+    };
+    let line = message
+        .split_once("unknown field `")
+        .and_then(|(_, rest)| rest.split_once('`'))
+        .and_then(|(key, _)| {
+            let text = std::fs::read_to_string(path).ok()?;
+            key_line(&text, &section, key)
+        });
+    let message = match line {
+        Some(line) => format!("{message} (config {}, line {line})", path.display()),
+        None => message,
+    };
+    CoreError::InvalidParams {
+        section,
+        name,
+        message,
+    }
+}
+
+/// The 1-based line of `key = …` in the table `[section]` (or one of its sub-tables) of TOML
+/// `text`.
+fn key_line(text: &str, section: &str, key: &str) -> Option<usize> {
+    let mut inside = false;
+    for (index, line) in text.lines().enumerate() {
+        let line = line.trim();
+        if let Some(header) = line.strip_prefix('[') {
+            let table = header
+                .trim_start_matches('[')
+                .split(']')
+                .next()
+                .unwrap_or_default()
+                .trim();
+            inside = table == section
+                || table
+                    .strip_prefix(section)
+                    .is_some_and(|sub| sub.starts_with('.'));
+            continue;
+        }
+        let named = line
+            .split_once('=')
+            .is_some_and(|(name, _)| name.trim().trim_matches('"') == key);
+        if inside && named {
+            return Some(index + 1);
+        }
+    }
+    None
+}
+
 /// The folder of a config file, against which its relative paths are resolved.
 pub fn config_folder(path: &Path) -> &Path {
     path.parent()
@@ -507,6 +567,42 @@ impl Default for QueryConfig {
 #[cfg(test)]
 mod tests {
     use super::*;
+
+    #[test]
+    fn an_unknown_stage_key_is_located_in_its_file() {
+        let dir = tempfile::tempdir().unwrap();
+        let path = dir.path().join("run.toml");
+        std::fs::write(
+            &path,
+            "[dataset]\nstride = 1\n\n[map]\nkind = \"point-cloud\"\nmax_point = 5\n\
+             [tracker.volume]\nmax_point = 1\n",
+        )
+        .unwrap();
+        let error = CoreError::InvalidParams {
+            section: "map".into(),
+            name: "point-cloud".into(),
+            message: "unknown field `max_point`, expected one of `max_points`".into(),
+        };
+        let located = with_config_line(error, &path).to_string();
+        assert!(
+            located.ends_with(&format!("(config {}, line 6)", path.display())),
+            "{located}"
+        );
+        assert_eq!(
+            key_line("[tracker]\n[tracker.volume]\nx = 1\n", "tracker", "x"),
+            Some(3)
+        );
+        assert_eq!(key_line("[map]\ny = 1\n", "map", "x"), None);
+        // Other errors pass through.
+        let other = CoreError::Unsupported {
+            implementation: "x".into(),
+            capability: "y",
+        };
+        assert!(matches!(
+            with_config_line(other, &path),
+            CoreError::Unsupported { .. }
+        ));
+    }
 
     #[test]
     fn minimal_config_gets_documented_defaults() {
