@@ -170,3 +170,31 @@ fn query_needs_texts_unless_interactive() {
         "{err}"
     );
 }
+
+#[cfg(all(feature = "colour-names", feature = "point-cloud"))]
+#[test]
+fn each_segmenter_keeps_its_own_threshold_and_show_prints_the_settings() {
+    let tmp = tempfile::tempdir().unwrap();
+    let out = tmp.path().join("demo");
+    ok(&["demo", "--out", out.to_str().unwrap()]);
+    let map = out.join("map.vlem");
+    let (success, stdout, stderr) = session(
+        &["query", "--map", map.to_str().unwrap(), "--interactive"],
+        ":threshold 0.9\n\
+         :segmenter cluster\n\
+         :segmenter threshold\n\
+         :quit\n",
+    );
+    assert!(success, "{stdout}\n{stderr}");
+    // 0.9 was typed for `threshold`: `cluster` keeps its own default (not a minimum of 0.9), and
+    // its baseline is the encoder's generic text; back on `threshold`, 0.9 is back too.
+    let expected = "threshold 0.9 for segmenter `threshold`\n\
+                    segmenter `cluster`\n\
+                    segmenter `cluster`, threshold its default\n\
+                    baseline \"grey\"\n\
+                    grasp off\n\
+                    segmenter `threshold`\n\
+                    segmenter `threshold`, threshold 0.9\n\
+                    grasp off\n";
+    assert!(stdout.contains(expected), "{stdout}");
+}

@@ -100,6 +100,10 @@ struct QuerySession {
     target: Target,
     args: QueryArgs,
     selection: Selection,
+    /// The `:threshold` typed for each segmenter in an interactive session: a threshold means
+    /// something else to each (a similarity to `threshold`, a minimum to `argmax` and `cluster`),
+    /// so switching segmenters takes that segmenter's own, or its default.
+    thresholds: std::collections::BTreeMap<String, f32>,
     recorder: Option<Recorder>,
 }
 
@@ -139,10 +143,16 @@ impl QuerySession {
         if let (Some(recorder), Target::Map { snapshot, .. }) = (&recorder, &target) {
             recorder.log_static_map(&snapshot.positions, &snapshot.colours)?;
         }
+        let thresholds = selection
+            .threshold
+            .map(|t| (selection.segmenter.clone(), t))
+            .into_iter()
+            .collect();
         Ok(Self {
             target,
             args,
             selection,
+            thresholds,
             recorder,
         })
     }
@@ -275,12 +285,23 @@ impl QuerySession {
                     .parse()
                     .with_context(|| format!(":threshold needs a number, got \"{argument}\""))?;
                 self.reconfigure(|s| s.threshold = Some(value))?;
-                println!("threshold {value}");
+                self.thresholds
+                    .insert(self.selection.segmenter.clone(), value);
+                println!(
+                    "threshold {value} for segmenter `{}`",
+                    self.selection.segmenter
+                );
             }
             "segmenter" => {
-                self.reconfigure(|s| s.segmenter = argument.clone())?;
+                let own = self.thresholds.get(&argument).copied();
+                self.reconfigure(|s| {
+                    s.segmenter = argument.clone();
+                    s.threshold = own;
+                })?;
                 println!("segmenter `{}`", self.selection.segmenter);
+                self.show();
             }
+            "show" => self.show(),
             "baseline" => {
                 self.reconfigure(|s| s.baseline = Some(argument.clone()))?;
                 println!("baseline \"{argument}\"");
@@ -296,6 +317,25 @@ impl QuerySession {
             _ => bail!("unknown command :{name} (:help lists them)"),
         }
         Ok(Continue::Go)
+    }
+
+    /// Prints the settings the next query uses.
+    fn show(&self) {
+        let Selection {
+            segmenter,
+            threshold,
+            baseline,
+        } = &self.selection;
+        let threshold = threshold.map_or_else(|| "its default".to_owned(), |t| t.to_string());
+        println!("segmenter `{segmenter}`, threshold {threshold}");
+        if segmenter != "threshold" {
+            let generic = match &self.target {
+                Target::Map { encoder, .. } => encoder.generic_text().to_owned(),
+                Target::Server(_) => vlem_core::GENERIC_TEXT.to_owned(),
+            };
+            println!("baseline \"{}\"", baseline.as_deref().unwrap_or(&generic));
+        }
+        println!("grasp {}", if self.args.grasp { "on" } else { "off" });
     }
 
     /// Changes how points are selected (rebuilding a loaded map's segmenter); on failure nothing
@@ -370,8 +410,10 @@ enum Continue {
 
 const INTERACTIVE_HELP: &str = "\
 a line of text      query the map with it (summary, and --ply / --rerun output)
-:threshold X        select points with normalised similarity >= X
-:segmenter NAME     threshold, argmax or cluster (as --segmenter)
+:threshold X        the current segmenter's threshold (threshold: the similarity a point must
+                    reach; argmax and cluster: their minimum); each segmenter keeps its own
+:segmenter NAME     threshold, argmax or cluster (as --segmenter), with its own threshold
+:show               the settings the next query uses
 :baseline TEXT      the generic text argmax and cluster compare against
 :grasp on|off       compute a grasp for each query's best point set
 :quit               leave (so does end of input)";
