@@ -242,16 +242,18 @@ fn raw(address: &str, head: &str, body: &str) -> (u16, String) {
     stream.write_all(request.as_bytes()).unwrap();
     let mut answer = String::new();
     stream.read_to_string(&mut answer).unwrap();
+    let (status, body) = status_and_body(&answer);
+    (status, body.to_owned())
+}
+
+/// An HTTP answer's status and body.
+fn status_and_body(answer: &str) -> (u16, &str) {
     let status = answer
         .split_whitespace()
         .nth(1)
         .and_then(|s| s.parse().ok())
         .unwrap_or_else(|| panic!("an HTTP answer: {answer}"));
-    let body = answer
-        .split_once("\r\n\r\n")
-        .map_or("", |(_, b)| b)
-        .to_owned();
-    (status, body)
+    (status, answer.split_once("\r\n\r\n").map_or("", |(_, b)| b))
 }
 
 #[test]
@@ -356,12 +358,7 @@ fn raw_head(address: &str, head: &[u8]) -> (u16, String) {
     let mut answer = Vec::new();
     let _ = stream.read_to_end(&mut answer);
     let answer = String::from_utf8_lossy(&answer).into_owned();
-    let status = answer
-        .split_whitespace()
-        .nth(1)
-        .and_then(|s| s.parse().ok())
-        .unwrap_or_else(|| panic!("an HTTP answer: {answer}"));
-    let body = answer.split_once("\r\n\r\n").map_or("", |(_, b)| b);
+    let (status, body) = status_and_body(&answer);
     let message = serde_json::from_str::<serde_json::Value>(body)
         .unwrap_or_else(|_| panic!("a JSON error body: {answer}"))["error"]
         .as_str()

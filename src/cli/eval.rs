@@ -177,14 +177,9 @@ pub fn execute(command: EvalCommand) -> Result<()> {
 }
 
 fn evaluate_trajectory(args: &TrajectoryArgs) -> Result<()> {
-    let reference = if args.reference.is_dir() {
-        vlem_datasets::trajectory_file(&args.reference)?
-    } else {
-        args.reference.clone()
-    };
     let report = report::evaluate_trajectory(
         &args.estimate,
-        &reference,
+        &args.reference,
         &TrajectoryOptions {
             delta: args.delta,
             max_time_diff: args.max_time_diff,

@@ -229,14 +229,7 @@ pub fn open(config: &DatasetConfig, dir: &Path) -> Result<Box<dyn FrameSource>> 
 pub fn trajectory_file(dir: &Path) -> Result<std::path::PathBuf> {
     let existing = |name: &str, hint: &str| {
         let path = dir.join(name);
-        if path.is_file() {
-            Ok(path)
-        } else {
-            Err(DatasetError::MissingFile {
-                path,
-                hint: hint.to_owned(),
-            })
-        }
+        sequence::require_file(&path, || hint.to_owned()).map(|()| path)
     };
     match detect_kind(dir)? {
         DatasetKind::Tum => existing("groundtruth.txt", "a TUM RGB-D folder's trajectory"),

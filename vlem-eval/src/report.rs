@@ -70,17 +70,25 @@ pub struct TrajectoryReport {
     pub rpe: RpeStats,
 }
 
-/// ATE and RPE of the trajectory file `estimate` against `reference` (TUM or `.log` each).
+/// ATE and RPE of the trajectory file `estimate` against `reference` (TUM or `.log` each; the
+/// reference may also be a dataset folder, whose trajectory file is found as its reader finds it,
+/// [`vlem_datasets::trajectory_file`]).
 ///
 /// # Errors
-/// A file that cannot be read, too few associated poses, degenerate input.
+/// A file that cannot be read, a folder without one trajectory file, too few associated poses,
+/// degenerate input.
 pub fn evaluate_trajectory(
     estimate: &Path,
     reference: &Path,
     options: &TrajectoryOptions,
 ) -> Result<TrajectoryReport> {
+    let reference = if reference.is_dir() {
+        vlem_datasets::trajectory_file(reference)?
+    } else {
+        reference.to_path_buf()
+    };
     let estimate = trajectory::read_trajectory(estimate, "estimate")?;
-    let reference = trajectory::read_trajectory(reference, "reference")?;
+    let reference = trajectory::read_trajectory(&reference, "reference")?;
     let association = trajectory::associate(&estimate, &reference, options.max_time_diff)?;
     let (estimated, true_poses) = association.poses(&estimate, &reference);
     let ate = trajectory::ate(&estimated, &true_poses, options.scale)?;

@@ -248,11 +248,13 @@ impl Connection {
                     self.buffer.extend_from_slice(&chunk[..n]);
                     return Ok(Filled::Bytes);
                 }
-                Err(e) if matches!(e.kind(), io::ErrorKind::Interrupted) => {}
+                // Interrupted, or the read timed out: the deadline decides on the next turn.
                 Err(e)
                     if matches!(
                         e.kind(),
-                        io::ErrorKind::WouldBlock | io::ErrorKind::TimedOut
+                        io::ErrorKind::Interrupted
+                            | io::ErrorKind::WouldBlock
+                            | io::ErrorKind::TimedOut
                     ) => {}
                 Err(_) => return Err(ReadError::Closed),
             }
