@@ -150,6 +150,66 @@ fn compressed_depth_transport_gives_the_same_depth() {
 }
 
 #[test]
+fn default_topics_fall_back_to_their_image_transport_names() {
+    // The living-room bags hold the colour only as `/camera/color/image_raw/compressed` and the
+    // depth as `/compressed` and `/compressedDepth`, as `ros2 bag record` of a camera often does:
+    // the default topics find them, depth's own transport first, and say so.
+    let expected = folder_frames(5);
+    for name in BAGS {
+        let config = DatasetConfig {
+            kind: DatasetKind::Rosbag2,
+            ..DatasetConfig::default()
+        };
+        let mut source = open(&config, &bag(name)).unwrap();
+        assert_eq!(source.len(), 5, "{name}");
+        let warnings = source.warnings();
+        for (key, topic) in [
+            ("colour_topic", "/camera/color/image_raw/compressed"),
+            (
+                "depth_topic",
+                "/camera/aligned_depth_to_color/image_raw/compressedDepth",
+            ),
+        ] {
+            assert!(
+                warnings.iter().any(|w| w.contains(key)
+                    && w.contains(&format!("image_transport topic {topic} instead"))),
+                "{name} {key}: {warnings:?}"
+            );
+        }
+        assert!(
+            source.describe().contains("/image_raw/compressed +"),
+            "{}",
+            source.describe()
+        );
+        for (i, want) in expected.iter().enumerate() {
+            let got = source.frame(i).unwrap();
+            assert_eq!(got.colour, want.colour, "{name} frame {i}");
+            assert_eq!(got.depth, want.depth, "{name} frame {i}");
+        }
+    }
+    // A bag with neither the topic nor its transports names all three.
+    let config = DatasetConfig {
+        kind: DatasetKind::Rosbag2,
+        rosbag2: Some(Rosbag2Config {
+            depth_topic: "/camera/depth".into(),
+            ..Rosbag2Config::default()
+        }),
+        ..DatasetConfig::default()
+    };
+    let message = open(&config, &bag("living-room-mcap"))
+        .err()
+        .unwrap()
+        .to_string();
+    assert!(
+        message.contains(
+            "no topic /camera/depth ([dataset.rosbag2] depth_topic), nor its image_transport \
+             names /camera/depth/compressedDepth, /camera/depth/compressed"
+        ),
+        "{message}"
+    );
+}
+
+#[test]
 fn one_storage_file_opens_without_its_folder() {
     let file = bag("living-room-mcap").join("living-room-mcap.mcap");
     assert_eq!(detect_kind(&file).unwrap(), DatasetKind::Rosbag2);

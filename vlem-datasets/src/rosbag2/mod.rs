@@ -15,7 +15,10 @@
 //!
 //! How a bag becomes frames, once when it is opened:
 //! - Every message of the configured topics is read once; images keep only their stamp and where
-//!   they are ([`storage`]), camera info, poses and tf are decoded and kept.
+//!   they are ([`storage`]), camera info, poses and tf are decoded and kept. A colour or depth
+//!   topic that is not in the bag is looked for under image_transport's names (`TOPIC/compressed`;
+//!   for depth `TOPIC/compressedDepth` first), which is all `ros2 bag record` of a camera often
+//!   keeps; a warning names the topic read instead.
 //! - Colour and depth are paired by header stamp: each depth image, in time order, takes the
 //!   nearest colour image not yet taken within `max_time_difference` (as TUM's `associate.py`).
 //!   Images left unpaired are dropped and counted in [`FrameSource::warnings`].

@@ -67,11 +67,50 @@ pub struct Rosbag2Reader {
     warnings: Vec<String>,
 }
 
+/// An image topic the scan reads for a role: the configured one, or one of its image_transport
+/// names.
+struct ImageTopic {
+    /// `"colour"` or `"depth"`.
+    role: &'static str,
+    name: String,
+    /// Whether this is the configured topic (else an image_transport name of it).
+    configured: bool,
+    image_type: Option<ImageType>,
+    stamps: Vec<Stamped>,
+}
+
+/// The topics an image may be on when the configured `topic` is not in a bag: image_transport
+/// publishes a camera's images under `TOPIC/compressed` (JPEG or PNG) and depth also under
+/// `TOPIC/compressedDepth`, and `ros2 bag record` of a camera often keeps only those. The
+/// configured topic comes first, then depth's own transport.
+fn image_topics(role: &'static str, topic: &str) -> Vec<ImageTopic> {
+    let transports: &[&str] = if role == "depth" {
+        &["", "/compressedDepth", "/compressed"]
+    } else {
+        &["", "/compressed"]
+    };
+    transports
+        .iter()
+        .map(|suffix| ImageTopic {
+            role,
+            name: format!("{topic}{suffix}"),
+            configured: suffix.is_empty(),
+            image_type: None,
+            stamps: Vec::new(),
+        })
+        .collect()
+}
+
 /// What the scan collects.
 #[derive(Default)]
 struct Scan {
     colour: Vec<Stamped>,
     depth: Vec<Stamped>,
+    /// The topics the images were read from (the configured ones, or their image_transport names).
+    colour_topic: String,
+    depth_topic: String,
+    /// Which image_transport topics were read instead of configured ones, for the warnings.
+    notes: Vec<String>,
     camera_info: Option<CameraInfo>,
     poses: Vec<(f64, Pose)>,
     pose_child_frame: Option<String>,
@@ -92,7 +131,7 @@ impl Rosbag2Reader {
     /// a pose for any frame; [`DatasetError::BadConfig`] for impossible settings;
     /// [`DatasetError::Empty`] when no colour and depth image pair up.
     pub fn open(path: &Path, config: &DatasetConfig) -> Result<Self> {
-        let settings = config.rosbag2.clone().unwrap_or_default();
+        let mut settings = config.rosbag2.clone().unwrap_or_default();
         let bad_config = |message: String| DatasetError::BadConfig {
             path: path.to_path_buf(),
             message,
@@ -127,8 +166,11 @@ impl Rosbag2Reader {
         let scale = depth_scale(config, ROS_DEPTH_SCALE, path)?;
         let mut bag = Bag::open(path)?;
         let use_camera_info = config.intrinsics.is_none();
-        let scan = scan(&mut bag, &settings, use_camera_info)?;
-        let mut warnings = Vec::new();
+        let mut scan = scan(&mut bag, &settings, use_camera_info)?;
+        // From here on the topics are where the images were found.
+        settings.colour_topic = std::mem::take(&mut scan.colour_topic);
+        settings.depth_topic = std::mem::take(&mut scan.depth_topic);
+        let mut warnings = std::mem::take(&mut scan.notes);
 
         let (colour_type, depth_type) = match (scan.colour_type, scan.depth_type) {
             (Some(c), Some(d)) => (c, d),
@@ -381,10 +423,12 @@ impl Rosbag2Reader {
 fn scan(bag: &mut Bag, settings: &Rosbag2Config, use_camera_info: bool) -> Result<Scan> {
     let path = bag.path().to_path_buf();
     let mut found = Scan::default();
+    let mut images = image_topics("colour", &settings.colour_topic);
+    images.extend(image_topics("depth", &settings.depth_topic));
+    let image_names: Vec<String> = images.iter().map(|t| t.name.clone()).collect();
     let use_tf = settings.tf.is_some();
     let wanted = |topic: &str| {
-        topic == settings.colour_topic
-            || topic == settings.depth_topic
+        image_names.iter().any(|name| name == topic)
             || (use_camera_info && topic == settings.camera_info_topic)
             || settings.pose_topic.as_deref() == Some(topic)
             || (use_tf && (topic == TF || topic == TF_STATIC))
@@ -402,23 +446,14 @@ fn scan(bag: &mut Bag, settings: &Rosbag2Config, use_camera_info: bool) -> Resul
             }
         };
         // A topic may fill two roles (e.g. one pose topic also given as colour): check each.
-        for (role, slot, list) in [
-            ("colour", &mut found.colour_type, &mut found.colour),
-            ("depth", &mut found.depth_type, &mut found.depth),
-        ] {
-            let topic_name = if role == "colour" {
-                &settings.colour_topic
-            } else {
-                &settings.depth_topic
-            };
-            if topic.name != *topic_name {
-                continue;
-            }
+        for image in images.iter_mut().filter(|t| t.name == topic.name) {
             let image_type = match type_name.as_str() {
                 IMAGE => ImageType::Raw,
                 COMPRESSED_IMAGE => ImageType::Compressed,
+                // An image_transport name holding something else is just not an alternative.
+                _ if !image.configured => continue,
                 _ => {
-                    mistyped(if role == "colour" {
+                    mistyped(if image.role == "colour" {
                         "colour_topic (sensor_msgs/msg/Image or CompressedImage)"
                     } else {
                         "depth_topic (sensor_msgs/msg/Image or CompressedImage)"
@@ -426,9 +461,9 @@ fn scan(bag: &mut Bag, settings: &Rosbag2Config, use_camera_info: bool) -> Resul
                     continue;
                 }
             };
-            *slot = Some(image_type);
+            image.image_type = Some(image_type);
             let header = header_of(data).map_err(|e| message_error(e.to_string()))?;
-            list.push(Stamped {
+            image.stamps.push(Stamped {
                 time: header.seconds(),
                 key,
             });
@@ -508,10 +543,58 @@ fn scan(bag: &mut Bag, settings: &Rosbag2Config, use_camera_info: bool) -> Resul
             ),
         });
     }
-    let mut needed = vec![
-        ("colour_topic", settings.colour_topic.clone()),
-        ("depth_topic", settings.depth_topic.clone()),
-    ];
+    for (role, key) in [("colour", "colour_topic"), ("depth", "depth_topic")] {
+        let mut candidates = images.iter_mut().filter(|t| t.role == role);
+        let Some(chosen) = candidates.find(|t| {
+            t.image_type.is_some() || (t.configured && topics.iter().any(|b| b.name == t.name))
+        }) else {
+            let names: Vec<String> = images
+                .iter()
+                .filter(|t| t.role == role)
+                .map(|t| t.name.clone())
+                .collect();
+            return Err(DatasetError::Bag {
+                path,
+                message: format!(
+                    "no topic {} ([dataset.rosbag2] {key}), nor its image_transport names {}; \
+                     the bag's topics: {}",
+                    names[0],
+                    names[1..].join(", "),
+                    listing()
+                ),
+            });
+        };
+        if !chosen.configured {
+            found.notes.push(format!(
+                "[dataset.rosbag2] {key} {} is not in the bag: reading its image_transport topic \
+                 {} instead (name it as {key} to silence this)",
+                if role == "colour" {
+                    &settings.colour_topic
+                } else {
+                    &settings.depth_topic
+                },
+                chosen.name
+            ));
+        }
+        let stamps = std::mem::take(&mut chosen.stamps);
+        let (list, topic, slot) = if role == "colour" {
+            (
+                &mut found.colour,
+                &mut found.colour_topic,
+                &mut found.colour_type,
+            )
+        } else {
+            (
+                &mut found.depth,
+                &mut found.depth_topic,
+                &mut found.depth_type,
+            )
+        };
+        *list = stamps;
+        *topic = chosen.name.clone();
+        *slot = chosen.image_type;
+    }
+    let mut needed = Vec::new();
     if use_camera_info {
         needed.push(("camera_info_topic", settings.camera_info_topic.clone()));
     }
