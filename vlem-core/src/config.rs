@@ -101,6 +101,17 @@ impl Config {
 /// no longer knows its lines, so the location is found again in the file the config came from.
 /// Other errors, and keys the file does not hold on a line of their own, come back unchanged.
 pub fn with_config_line(error: CoreError, path: &Path) -> CoreError {
+    let text = std::fs::read_to_string(path).ok();
+    with_config_text_line(
+        error,
+        text.as_deref().unwrap_or(""),
+        &path.display().to_string(),
+    )
+}
+
+/// [`with_config_line`] for a config given as TOML `text` rather than a file (Python's
+/// `vlem.Pipeline("[map]\n…")`); `origin` names it in the message.
+pub fn with_config_text_line(error: CoreError, text: &str, origin: &str) -> CoreError {
     let CoreError::InvalidParams {
         section,
         name,
@@ -112,12 +123,9 @@ pub fn with_config_line(error: CoreError, path: &Path) -> CoreError {
     let line = message
         .split_once("unknown field `")
         .and_then(|(_, rest)| rest.split_once('`'))
-        .and_then(|(key, _)| {
-            let text = std::fs::read_to_string(path).ok()?;
-            key_line(&text, &section, key)
-        });
+        .and_then(|(key, _)| key_line(text, &section, key));
     let message = match line {
-        Some(line) => format!("{message} (config {}, line {line})", path.display()),
+        Some(line) => format!("{message} (config {origin}, line {line})"),
         None => message,
     };
     CoreError::InvalidParams {

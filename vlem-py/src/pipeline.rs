@@ -136,11 +136,30 @@ fn busy(slot: &Slot) -> PyResult<std::sync::MutexGuard<'_, Option<Pipeline>>> {
     }
 }
 
-/// The config and build context `config` names.
+/// Where a config came from, to point a stage's unknown key at its line.
+pub(crate) enum ConfigOrigin {
+    File(PathBuf),
+    Text(String),
+    /// A dict: its TOML form has no lines the user wrote.
+    Dict,
+}
+
+impl ConfigOrigin {
+    /// `error` with the file (or text) and line of the stage key it names, where it names one.
+    pub(crate) fn locate(&self, error: vlem_core::CoreError) -> vlem_core::CoreError {
+        match self {
+            Self::File(path) => vlem_core::config::with_config_line(error, path),
+            Self::Text(text) => vlem_core::config::with_config_text_line(error, text, "text"),
+            Self::Dict => error,
+        }
+    }
+}
+
+/// The config and build context `config` names, and where it came from.
 pub(crate) fn load_config(
     config: &Bound<'_, PyAny>,
     config_dir: Option<PathBuf>,
-) -> PyResult<(Config, BuildContext)> {
+) -> PyResult<(Config, BuildContext, ConfigOrigin)> {
     let text_context = |text: &str| -> PyResult<(Config, BuildContext)> {
         let config = Config::from_toml(text).map_err(errors::ConfigError::new_err)?;
         let dir = match config_dir.clone() {
@@ -151,7 +170,8 @@ pub(crate) fn load_config(
         Ok((config, ctx))
     };
     if config.is_instance_of::<PyDict>() {
-        return text_context(&dict_to_toml(config, "config")?);
+        let (config, ctx) = text_context(&dict_to_toml(config, "config")?)?;
+        return Ok((config, ctx, ConfigOrigin::Dict));
     }
     let is_path_like = config.hasattr("__fspath__")?;
     if let Ok(text) = config.extract::<String>()
@@ -159,7 +179,8 @@ pub(crate) fn load_config(
     {
         let path = PathBuf::from(&text);
         if !(path.is_file() || text.trim_end().ends_with(".toml") && !text.contains('\n')) {
-            return text_context(&text);
+            let (config, ctx) = text_context(&text)?;
+            return Ok((config, ctx, ConfigOrigin::Text(text)));
         }
     }
     let path: PathBuf = config.extract().map_err(|_| {
@@ -168,7 +189,8 @@ pub(crate) fn load_config(
             config.get_type()
         ))
     })?;
-    vlem_core::load_config(&path).map_err(errors::core)
+    let (config, ctx) = vlem_core::load_config(&path).map_err(errors::core)?;
+    Ok((config, ctx, ConfigOrigin::File(path)))
 }
 
 /// A progress event as a dict.
@@ -325,8 +347,9 @@ impl PyPipeline {
     #[new]
     #[pyo3(signature = (config, *, config_dir = None))]
     fn new(config: &Bound<'_, PyAny>, config_dir: Option<PathBuf>) -> PyResult<Self> {
-        let (config, ctx) = load_config(config, config_dir)?;
-        let pipeline = Pipeline::from_config(&config, &ctx).map_err(errors::core)?;
+        let (config, ctx, origin) = load_config(config, config_dir)?;
+        let pipeline =
+            Pipeline::from_config(&config, &ctx).map_err(|e| errors::core(origin.locate(e)))?;
         Ok(Self {
             live: pipeline.live(),
             pipeline: Arc::new(Mutex::new(Some(pipeline))),

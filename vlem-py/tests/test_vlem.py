@@ -1,7 +1,7 @@
 """The vlem Python package: numpy in and out, the same answers as the `vlem` command, frames fed
 while another thread queries, Python encoders through the pipeline, and the errors.
 
-Run from the repository root after installing the package (see README, "Python"):
+Run from the repository root after installing the package (see docs/python.md):
     python -m pytest vlem-py/tests
 `VLEM_BIN` names the `vlem` binary for the comparison with `vlem query` (that test is skipped
 without it). Reading the committed JPEG/PNG frames needs Pillow.
@@ -233,6 +233,13 @@ def test_errors_are_typed_and_carry_the_command_line_message(tmp_path):
         vlem.Pipeline(config({"kind": "clipp"}))
     with pytest.raises(vlem.ConfigError, match="unknown field `bogus`"):
         vlem.Pipeline(config(bogus=1))
+    # A typo inside a stage's table names the file (or text) and the line, as `vlem run` does.
+    typo = '[encoder]\nkind = "colour-names"\n\n[map]\nkind = "point-cloud"\nmax_point = 5\n'
+    (tmp_path / "typo.toml").write_text(typo)
+    with pytest.raises(vlem.ConfigError, match=r"unknown field `max_point`.*\(config .*typo\.toml, line 6\)"):
+        vlem.Pipeline(str(tmp_path / "typo.toml"))
+    with pytest.raises(vlem.ConfigError, match=r"max_point.*\(config text, line 6\)"):
+        vlem.Pipeline(typo)
     assert issubclass(vlem.ConfigError, vlem.VlemError) and issubclass(vlem.EncoderError, vlem.StageError)
     with pytest.raises(vlem.DatasetError):
         vlem.Pipeline(config()).run(tmp_path / "nowhere")
