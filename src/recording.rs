@@ -4,7 +4,7 @@
 //! the region proposer's segments, the trajectory so far, the embedding map's points every few
 //! integrated frames, and at the end the whole map and the tracker's dense colour model. A query
 //! logs, on the `query` timeline and under an entity of its own, the heatmap (jet colours, as in
-//! the paper's figures), the selected point sets and the grasp. The README lists every entity;
+//! the paper's figures), the selected point sets and the grasp. docs/usage.md lists every entity;
 //! the recording opens in the stock rerun viewer.
 
 use std::path::Path;

@@ -64,7 +64,7 @@ pub struct DemoArgs {
 struct ServeArgs {
     /// Serve the live map over HTTP/JSON while mapping, on a loopback address such as
     /// 127.0.0.1:8765 (GET /status, POST /query, GET /heatmap.ply, POST /snapshot, GET /map.vlem;
-    /// see the README). `vlem query --connect ADDR` is its client.
+    /// see docs/server.md). `vlem query --connect ADDR` is its client.
     #[arg(long, value_name = "127.0.0.1:PORT")]
     serve: Option<String>,
     /// Keep serving after the run has finished and written its outputs, until interrupted.

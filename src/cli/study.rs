@@ -16,7 +16,7 @@ use vlem_eval::study::{self, RunSelection, Shard, Study, StudyEvent};
 /// Arguments of `vlem study`.
 #[derive(clap::Args, Debug)]
 pub struct StudyArgs {
-    /// The study file (TOML; see README "Comparison studies").
+    /// The study file (TOML; see docs/evaluation.md, "Comparison studies").
     pub study: PathBuf,
     /// Output folder: one sub-folder per cell, `study.csv`, `study.svg`, `study.png`.
     #[arg(long, default_value = "out/study")]

@@ -120,7 +120,7 @@ mod tests {
         assert_eq!(jet(f32::NAN), jet(0.0));
     }
 
-    /// The README's legend image lists `jet` at its stops; it must not drift from the code.
+    /// The legend image of docs/usage.md lists `jet` at its stops; it must not drift from the code.
     #[test]
     fn legend_image_matches_jet() {
         let svg = include_str!("../../docs/heatmap-legend.svg");

@@ -764,7 +764,7 @@ fn for_log(text: &str) -> String {
 }
 
 /// A query's text and whether it asks for a grasp: the prefix `grasp:` in any case (`Grasp:`,
-/// `GRASP:`), as the README documents, with the spaces around the text removed.
+/// `GRASP:`), as docs/ros2.md documents, with the spaces around the text removed.
 fn parse_query(text: &str) -> (String, bool) {
     let text = text.trim();
     match text.get(..6) {

@@ -10,7 +10,7 @@
 //!
 //! Who may ask is decided in `guard.rs` before a request is routed: a loopback `Host` with
 //! the server's port, no cross-site `Origin`, JSON POSTs only, and an optional bearer token (the
-//! README's threat model says why each one).
+//! docs/server.md's threat model says why each one).
 //!
 //! Endpoints (JSON unless said otherwise; see [`api`] for the bodies):
 //! - `GET /status`: the run's counters, the latest pose and the map's size ([`api::Status`]);

@@ -23,8 +23,8 @@ mod open;
 pub use memory::DeviceMemoryPeak;
 
 /// How to get a build that can run on a GPU, for the messages that say this one cannot.
-pub const CUDA_BUILD_HINT: &str = "build vlem with `--features cuda` (README, \"On an NVIDIA \
-     GPU\": `source bench/gpu/cuda-toolchain.sh --link` first), or set `device = \"cpu\"`";
+pub const CUDA_BUILD_HINT: &str = "build vlem with `--features cuda` (docs/gpu.md: \
+     `source bench/gpu/cuda-toolchain.sh --link` first), or set `device = \"cpu\"`";
 
 /// The device a model runs on: `"cpu"` (the default), `"cuda"` (the first GPU) or `"cuda:N"`.
 #[derive(Clone, Copy, Debug, Default, PartialEq, Eq, Hash)]
