@@ -10,8 +10,7 @@
 //! - ScanNet `pose/N.txt`: the 4x4 camera-to-world matrix of one frame, one row per line; read with
 //!   the frame, so that one lost frame does not make the whole sequence unusable.
 
-use std::io::Write;
-use std::path::{Path, PathBuf};
+use std::path::Path;
 
 use nalgebra::{Matrix3, Matrix4, Quaternion, Rotation3, Translation3, UnitQuaternion};
 use vlem_core::Pose;
@@ -178,7 +177,7 @@ pub fn format_tum_line(timestamp: f64, pose: &Pose) -> String {
 ///
 /// # Errors
 /// [`DatasetError::NonFinitePose`] when a pose is not finite (nothing is written), and
-/// [`DatasetError::Io`] when the file cannot be written or renamed.
+/// [`DatasetError::Core`] when the file cannot be written or renamed.
 pub fn write_tum(path: &Path, poses: &[(f64, Pose)]) -> Result<()> {
     let mut text = String::from("# timestamp tx ty tz qx qy qz qw\n");
     for (frame, (t, pose)) in poses.iter().enumerate() {
@@ -191,41 +190,12 @@ pub fn write_tum(path: &Path, poses: &[(f64, Pose)]) -> Result<()> {
         text.push_str(&format_tum_line(*t, pose));
         text.push('\n');
     }
-    let tmp = temporary_path(path)?;
-    let written = write_synced(&tmp, text.as_bytes()).and_then(|()| {
-        std::fs::rename(&tmp, path).map_err(|e| DatasetError::Io {
-            path: path.to_path_buf(),
-            source: e,
-        })
-    });
-    if written.is_err() {
-        // Best effort: the temporary file is useless, and the real error is the one to report.
-        let _ = std::fs::remove_file(&tmp);
-    }
-    written
-}
-
-/// `<path>.tmp` in the same folder, so that the final rename stays on one file system.
-fn temporary_path(path: &Path) -> Result<PathBuf> {
-    let Some(name) = path.file_name() else {
-        return Err(DatasetError::Io {
-            path: path.to_path_buf(),
-            source: std::io::Error::new(std::io::ErrorKind::InvalidInput, "not a file path"),
-        });
-    };
-    let mut tmp = name.to_os_string();
-    tmp.push(".tmp");
-    Ok(path.with_file_name(tmp))
-}
-
-fn write_synced(path: &Path, bytes: &[u8]) -> Result<()> {
-    let io = |e| DatasetError::Io {
+    // The one crash-safe way vlem writes a file (unique temporary name, synced, renamed, the
+    // folder synced), so two runs writing into one folder never share a temporary file.
+    vlem_core::files::write_atomically(path, text.as_bytes()).map_err(|source| DatasetError::Core {
         path: path.to_path_buf(),
-        source: e,
-    };
-    let mut file = std::fs::File::create(path).map_err(io)?;
-    file.write_all(bytes).map_err(io)?;
-    file.sync_all().map_err(io)
+        source,
+    })
 }
 
 /// Reads one ScanNet pose file (4x4 camera-to-world, rows) for frame `frame`.

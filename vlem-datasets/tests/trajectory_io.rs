@@ -64,12 +64,18 @@ fn tum_round_trip_through_a_renamed_temporary_file() {
 #[test]
 fn tum_errors_name_the_file() {
     let tmp = tempfile::tempdir().unwrap();
-    let missing = tmp.path().join("no-such-dir/trajectory.tum");
-    let err = write_tum(&missing, &[(0.0, Pose::identity())])
+    // A missing folder is created, as every save of vlem does.
+    let nested = tmp.path().join("no-such-dir/trajectory.tum");
+    write_tum(&nested, &[(0.0, Pose::identity())]).unwrap();
+    assert_eq!(read_tum(&nested).unwrap().len(), 1);
+    // A folder that cannot be made (a file is in its place) names the trajectory file.
+    std::fs::write(tmp.path().join("a-file"), b"").unwrap();
+    let blocked = tmp.path().join("a-file/trajectory.tum");
+    let err = write_tum(&blocked, &[(0.0, Pose::identity())])
         .unwrap_err()
         .to_string();
     assert!(
-        err.starts_with(&format!("{}.tmp: ", missing.display())),
+        err.starts_with(&format!("{}: ", blocked.display())),
         "{err}"
     );
 
