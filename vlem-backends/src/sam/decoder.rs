@@ -13,16 +13,12 @@
 use candle_core::{Module, Result, Tensor};
 use candle_nn::{LayerNorm, Linear, VarBuilder};
 
-use super::image::INPUT_SIZE;
+use super::image::{EMBED_DIM, GRID, INPUT_SIZE};
 use super::image_side::{self, ImageToToken, TokenToImage};
 use super::layers::{LayerNorm2d, apply_linear, cat_last, gelu, layer_norm, linear};
 use super::mask_head::FusedMaskHead;
 use crate::attention::{Attention, Inputs, Scores};
 
-/// Channels of image embeddings and prompt tokens.
-pub const EMBED_DIM: usize = 256;
-/// Side of the image embedding grid.
-pub const GRID: usize = 64;
 const NUM_MASK_TOKENS: usize = 4;
 const HEADS: usize = 8;
 const MLP_DIM: usize = 2048;

@@ -18,6 +18,12 @@ pub const INPUT_SIZE: usize = 1024;
 /// Side length of SAM's low-resolution mask logits.
 pub const LOW_RES: usize = 256;
 
+/// Channels of the image encoder's embeddings and of the decoder's prompt tokens (every variant).
+pub const EMBED_DIM: usize = 256;
+
+/// Side of the image embedding grid: `INPUT_SIZE / 16` (every variant).
+pub const GRID: usize = 64;
+
 /// SAM's pixel mean (RGB, 0-255).
 pub const PIXEL_MEAN: [f32; 3] = [123.675, 116.28, 103.53];
 

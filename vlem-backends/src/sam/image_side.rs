@@ -22,7 +22,7 @@ use candle_core::{Result, Tensor};
 use candle_nn::{LayerNorm, Linear};
 use rayon::prelude::*;
 
-use super::decoder::{EMBED_DIM, GRID};
+use super::image::{EMBED_DIM, GRID};
 use crate::kernels::{layer_norm_in_place, matmul, softmax_runs};
 
 /// Attention heads of the decoder's attentions.

@@ -13,7 +13,7 @@
 use candle_core::{Result, Tensor};
 use rayon::prelude::*;
 
-use super::decoder::{EMBED_DIM, GRID};
+use super::image::{EMBED_DIM, GRID};
 use crate::kernels::{gelu_erf_in_place, layer_norm_in_place, matmul};
 
 /// Channels after the first transposed convolution.

@@ -9,6 +9,7 @@
 use candle_core::{Module, Result, Tensor};
 use candle_nn::{Conv2d, Conv2dConfig, LayerNorm, Linear, VarBuilder};
 
+use super::image::{EMBED_DIM, GRID};
 use super::layers::{LayerNorm2d, apply_linear, conv2d_bn, gelu, layer_norm, linear};
 use super::vit::{window_partition, window_unpartition};
 use crate::attention::{Attention, Inputs, Scores};
@@ -40,8 +41,7 @@ impl TinyVitConfig {
 
 const MLP_RATIO: usize = 4;
 const MBCONV_EXPAND: usize = 4;
-const OUT_CHANS: usize = 256;
-const GRID: usize = 64;
+const OUT_CHANS: usize = EMBED_DIM;
 
 fn conv_cfg(stride: usize, padding: usize, groups: usize) -> Conv2dConfig {
     Conv2dConfig {

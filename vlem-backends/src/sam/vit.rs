@@ -8,6 +8,7 @@
 use candle_core::{Module, Result, Tensor};
 use candle_nn::{Conv2d, Conv2dConfig, LayerNorm, Linear, VarBuilder};
 
+use super::image::{EMBED_DIM, GRID, INPUT_SIZE};
 use super::layers::{LayerNorm2d, apply_linear, gelu, layer_norm, linear};
 use crate::attention::{Attention, Inputs, Scores};
 
@@ -57,9 +58,9 @@ impl VitConfig {
 }
 
 const PATCH: usize = 16;
-const GRID: usize = 1024 / PATCH;
+const _: () = assert!(INPUT_SIZE / PATCH == GRID);
 const WINDOW: usize = 14;
-const OUT_CHANS: usize = 256;
+const OUT_CHANS: usize = EMBED_DIM;
 
 /// The relative position table for query and key lengths `size`: `(size, size, head_dim)` rows
 /// `q - k + size - 1` of `rel_pos` (the reference's `get_rel_pos` for equal sizes, where no
