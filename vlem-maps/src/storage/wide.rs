@@ -32,6 +32,7 @@ pub(super) fn fuse_into(map: &mut [f32], observed: &[f32], map_weight: f32) {
 }
 
 /// The row length from which [`fuse_into`] calls the AVX2 build.
+#[cfg(target_arch = "x86_64")]
 const WIDE_FROM: usize = 64;
 
 #[cfg(target_arch = "x86_64")]
