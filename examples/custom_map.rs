@@ -2,11 +2,11 @@
 //!
 //! The map, `latest-voxel`, cuts the world into coarse voxels and keeps, per voxel, only the
 //! latest observation: the last pixel that fell into it, with its world point, colour and
-//! embedding. Everything a map shares with the others comes from `vlem_maps::kit`: the config's
-//! `dim`, `max_depth`, `pixel_stride` and `precision` and their checks ([`vlem_maps::map_config!`]),
+//! embedding. Everything a map shares with the others comes from `vlem::maps::kit`: the config's
+//! `dim`, `max_depth`, `pixel_stride` and `precision` and their checks ([`vlem::maps::map_config!`]),
 //! the valid, in-range, embedded pixels of a frame in world coordinates
-//! ([`vlem_maps::kit::FramePixels`]), the embedding lookup and the input checks; the embedding
-//! table is [`vlem_maps::storage::EmbeddingStore`]. What is left is the fusion rule.
+//! ([`vlem::maps::kit::FramePixels`]), the embedding lookup and the input checks; the embedding
+//! table is [`vlem::maps::storage::EmbeddingStore`]. What is left is the fusion rule.
 //!
 //! It maps the 30 committed living-room frames in `data/` with their trajectory and the
 //! weight-free `colour-names` encoder, then prints the map's size and the best score of one
@@ -20,21 +20,18 @@ use std::collections::HashMap;
 use std::path::Path;
 
 use anyhow::{Context, Result};
-use vlem_core::pipeline::{Pipeline, Progress};
-use vlem_core::{
+use vlem::core::pipeline::{Pipeline, Progress};
+use vlem::core::{
     BuildContext, Config, CoreError, EmbeddingMap, IntegrationStats, MapBudget, MapMetadata,
     MapSnapshot, Observation, StageKind, parse_params,
 };
-use vlem_maps::kit::{FramePixels, check_observation, count_in, embedding, number_in};
-use vlem_maps::storage::EmbeddingStore;
-// Linked for their registrations: the `ground-truth` tracker and the `colour-names` encoder.
-use vlem_plugin_colour_names as _;
-use vlem_trackers as _;
+use vlem::maps::kit::{FramePixels, check_observation, count_in, embedding, number_in};
+use vlem::maps::storage::EmbeddingStore;
 
 /// The registered name.
 const NAME: &str = "latest-voxel";
 
-vlem_maps::map_config! {
+vlem::maps::map_config! {
     /// `[map] kind = "latest-voxel"` parameters.
     pub struct LatestVoxelConfig {
         /// Edge length of a voxel in metres; default 0.1.
@@ -58,7 +55,7 @@ struct LatestVoxelMap {
     frames: usize,
 }
 
-fn build(params: &toml::Table, ctx: &BuildContext) -> vlem_core::Result<Box<dyn EmbeddingMap>> {
+fn build(params: &toml::Table, ctx: &BuildContext) -> vlem::core::Result<Box<dyn EmbeddingMap>> {
     let config: LatestVoxelConfig = parse_params(StageKind::Map, NAME, params)?;
     // Every numeric setting has a range, refused at build with the key, the range and the value.
     number_in(NAME, "voxel_size", config.voxel_size, (0.001, 10.0), "m")?;
@@ -82,7 +79,7 @@ fn build(params: &toml::Table, ctx: &BuildContext) -> vlem_core::Result<Box<dyn 
     }))
 }
 
-vlem_core::register_map!(
+vlem::core::register_map!(
     NAME,
     "the latest observation per coarse voxel (examples/custom_map.rs)",
     build
@@ -97,7 +94,7 @@ impl EmbeddingMap for LatestVoxelMap {
         self.dim
     }
 
-    fn integrate(&mut self, obs: &Observation<'_>) -> vlem_core::Result<IntegrationStats> {
+    fn integrate(&mut self, obs: &Observation<'_>) -> vlem::core::Result<IntegrationStats> {
         check_observation(self.dim, obs).map_err(|e| CoreError::stage(StageKind::Map, NAME, e))?;
         self.frames += 1;
         let mut stats = IntegrationStats::default();
@@ -164,11 +161,11 @@ impl EmbeddingMap for LatestVoxelMap {
             + self.embeddings.memory_bytes()
     }
 
-    fn similarity(&self, text: &[f32], out: &mut Vec<f32>) -> vlem_core::Result<()> {
+    fn similarity(&self, text: &[f32], out: &mut Vec<f32>) -> vlem::core::Result<()> {
         self.embeddings.similarity(text, out)
     }
 
-    fn snapshot(&self) -> vlem_core::Result<MapSnapshot> {
+    fn snapshot(&self) -> vlem::core::Result<MapSnapshot> {
         Ok(MapSnapshot {
             map_kind: NAME.into(),
             dim: self.dim,
@@ -204,7 +201,7 @@ fn main() -> Result<()> {
         embedding_dim: None,
     };
     let mut pipeline = Pipeline::from_config(&config, &ctx)?;
-    let mut source = vlem_datasets::open(&config.dataset, &root.join("data/living-room"))?;
+    let mut source = vlem::datasets::open(&config.dataset, &root.join("data/living-room"))?;
     let report = pipeline.run(source.as_mut(), None, &|_: Progress| {})?;
 
     let map = pipeline.map().context("the config has a [map]")?;

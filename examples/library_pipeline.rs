@@ -9,22 +9,15 @@
 //!
 //! The frame source here replays a dataset folder at a camera's rate; a robot would return
 //! frames from its driver instead. The stages are built through the registry by name, exactly as
-//! a TOML config names them, so any encoder or map compiled in can be swapped in.
-
-// Link the crates whose implementations are built by name below.
-use vlem_maps as _;
-use vlem_plugin_colour_names as _;
-use vlem_trackers as _;
+//! a TOML config names them, so any encoder or map compiled in can be swapped in. It names only
+//! the `vlem` crate: the library links every implementation its features turn on.
 
 use std::path::Path;
 use std::sync::atomic::{AtomicBool, Ordering};
 use std::time::Duration;
 
 use anyhow::Result;
-use vlem_core::config::{DatasetConfig, Mode, PipelineConfig};
-use vlem_core::pipeline::{Pipeline, Progress};
-use vlem_core::{BuildContext, Frame, FrameSource, Intrinsics, Registry, StageConfig};
-use vlem_query::answer::{AnswerOptions, Selection, answer_live};
+use vlem::prelude::*;
 
 /// A "camera": frames come from a dataset reader, at most at 30 Hz.
 struct Camera {
@@ -46,7 +39,7 @@ impl FrameSource for Camera {
         // `odometry` or `frame-to-model` tracker instead of `ground-truth`.
         self.recording.has_poses()
     }
-    fn frame(&mut self, index: usize) -> vlem_core::Result<Frame> {
+    fn frame(&mut self, index: usize) -> vlem::core::Result<Frame> {
         self.recording.frame(index)
     }
 }
@@ -80,7 +73,7 @@ fn main() -> Result<()> {
 
     let folder = Path::new(env!("CARGO_MANIFEST_DIR")).join("data/living-room");
     let mut camera = Camera {
-        recording: vlem_datasets::open(&DatasetConfig::default(), &folder)?,
+        recording: vlem::datasets::open(&DatasetConfig::default(), &folder)?,
     };
 
     // The handle other threads query through; it stays valid during and after the run.

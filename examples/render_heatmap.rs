@@ -12,15 +12,12 @@
 //! wins. Left: the points' colours; right: the similarity to the text with the jet colour map of
 //! every vlem heatmap, on the absolute scale 0–1 that the strip under it shows.
 
-// Link the encoders a map may name (the demo's is colour-names).
-use vlem_plugin_colour_names as _;
-
 use std::path::PathBuf;
 
 use anyhow::{Context, Result, bail};
 use image::{Rgb, RgbImage};
-use vlem_query::answer::{EmbeddedTexts, encoder_for_map, score_snapshot};
-use vlem_query::heatmap::jet;
+use vlem::query::answer::{EmbeddedTexts, encoder_for_map, score_snapshot};
+use vlem::query::heatmap::jet;
 
 /// Width and height of one panel, pixels.
 const PANEL: (u32, u32) = (480, 360);
@@ -36,7 +33,7 @@ fn main() -> Result<()> {
     };
     let png = PathBuf::from(png);
 
-    let snapshot = vlem_core::read_map_file(map.as_ref())?;
+    let snapshot = vlem::core::read_map_file(map.as_ref())?;
     let encoder = encoder_for_map(&snapshot.metadata, map)?;
     let texts = EmbeddedTexts {
         texts: vec![text.clone()],

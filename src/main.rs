@@ -4,7 +4,6 @@
 
 mod cli;
 mod output;
-mod plugins;
 #[cfg(feature = "rerun")]
 mod recording;
 #[cfg(not(feature = "rerun"))]
@@ -12,6 +11,8 @@ mod recording;
 mod recording;
 
 use clap::{Parser, Subcommand};
+// The library links every plugin crate the features turn on (`vlem::plugins`).
+use vlem as _;
 
 #[derive(Parser)]
 #[command(

@@ -1,9 +1,10 @@
-//! Links every plugin crate into the binary.
+//! Links every plugin crate into every program built on the library (the `vlem` command, the
+//! examples, a user's program).
 //!
 //! `inventory` registrations live in the crates that define them; a crate that is a dependency but
 //! never referenced is not linked and its registrations vanish without a word. Every plugin crate
-//! the binary depends on is therefore referenced here, and `tests/cli.rs` checks the names that
-//! `vlem plugins` lists.
+//! the library depends on is therefore referenced here, and `tests/cli.rs` checks the names that
+//! `vlem plugins` lists (the examples, which name no plugin crate, build their stages by name).
 //!
 //! Each crate also declares, with `feature_hint!`, the cargo feature of every optional
 //! implementation it owns, whether or not that feature is on, so that a binary built without it

@@ -167,6 +167,8 @@ fn workspace(root: &Path) -> (PathBuf, PathBuf) {
          \x20 shift 2\n\
          \x20 if [ \"$1\" = --example ]; then\n\
          \x20   name=$2; shift 2; [ \"$1\" = -- ] && shift\n\
+         \x20   [ -x \"{examples}/$name\" ] || {{ echo \"docs test: no example $name in {examples} \
+         (a whole cargo test builds the examples; --test alone does not)\" >&2; exit 2; }}\n\
          \x20   exec \"{examples}/$name\" \"$@\"\n\
          \x20 fi\n\
          \x20 [ \"$1\" = -- ] && shift\n\
