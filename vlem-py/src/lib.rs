@@ -17,13 +17,10 @@ mod json;
 mod map;
 mod pipeline;
 
-// Link the crates whose implementations the registry builds by name.
-use vlem_backends as _;
-use vlem_maps as _;
-use vlem_plugin_colour_names as _;
+// The library links every implementation the features turn on (`vlem::plugins`); Python
+// encoders are in the package always.
+use vlem as _;
 use vlem_plugin_python as _;
-use vlem_query as _;
-use vlem_trackers as _;
 
 use pyo3::prelude::*;
 use pyo3::types::PyDict;
