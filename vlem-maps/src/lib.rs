@@ -15,6 +15,13 @@ pub mod point_cloud;
 #[cfg(feature = "segment")]
 pub mod segment;
 pub mod storage;
+#[cfg(test)]
+#[allow(
+    clippy::unwrap_used,
+    dead_code,
+    reason = "test fixtures; a build with one map uses a part of them"
+)]
+mod test_fixtures;
 #[cfg(feature = "voxel")]
 pub mod voxel;
 

@@ -840,7 +840,8 @@ impl EmbeddingMap for PointCloudMap {
 mod tests {
     use super::*;
     use crate::storage::Precision;
-    use vlem_core::{DepthImage, Frame, Intrinsics, PixelEmbeddings, Pose, RgbImage};
+    use crate::test_fixtures::*;
+    use vlem_core::{PixelEmbeddings, Pose};
 
     #[cfg(feature = "candle")]
     #[test]
@@ -868,41 +869,8 @@ mod tests {
         }
     }
 
-    const DIM: usize = 4;
-
-    fn plane(depth: f32) -> Frame {
-        let k = Intrinsics::new(16, 12, 20.0, 20.0, 7.5, 5.5).unwrap();
-        Frame::new(
-            0,
-            0.0,
-            RgbImage::filled(16, 12, [200, 100, 0]),
-            DepthImage::new(16, 12, vec![depth; 16 * 12]).unwrap(),
-            k,
-            None,
-        )
-        .unwrap()
-    }
-
-    fn uniform(e: [f32; DIM]) -> PixelEmbeddings {
-        PixelEmbeddings::from_segments(16, 12, DIM, vec![0; 16 * 12], e.to_vec()).unwrap()
-    }
-
     fn map(config: PointCloudConfig) -> PointCloudMap {
         config.build(Some(DIM)).unwrap()
-    }
-
-    fn integrate(
-        m: &mut PointCloudMap,
-        f: &Frame,
-        pose: &Pose,
-        e: &PixelEmbeddings,
-    ) -> IntegrationStats {
-        m.integrate(&Observation {
-            frame: f,
-            pose,
-            embeddings: Some(e),
-        })
-        .unwrap()
     }
 
     #[test]

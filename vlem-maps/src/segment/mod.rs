@@ -738,27 +738,8 @@ impl SegmentMap {
 mod tests {
     use super::*;
     use crate::storage::Precision;
-    use vlem_core::{DepthImage, Frame, Intrinsics, Pose, RgbImage};
-
-    const DIM: usize = 4;
-
-    /// A 16x12 fronto-parallel plane; at 1 m a pixel covers 5 cm.
-    fn plane(depth: f32) -> Frame {
-        let k = Intrinsics::new(16, 12, 20.0, 20.0, 7.5, 5.5).unwrap();
-        Frame::new(
-            0,
-            0.0,
-            RgbImage::filled(16, 12, [200, 100, 0]),
-            DepthImage::new(16, 12, vec![depth; 16 * 12]).unwrap(),
-            k,
-            None,
-        )
-        .unwrap()
-    }
-
-    fn uniform(e: [f32; DIM]) -> PixelEmbeddings {
-        PixelEmbeddings::from_segments(16, 12, DIM, vec![0; 16 * 12], e.to_vec()).unwrap()
-    }
+    use crate::test_fixtures::{self, *};
+    use vlem_core::{Frame, PixelEmbeddings, Pose};
 
     /// Columns below `split` are segment 0, the rest segment 1.
     fn split(split: u32, a: [f32; DIM], b: [f32; DIM]) -> PixelEmbeddings {
@@ -775,13 +756,9 @@ mod tests {
         }
     }
 
+    /// Integrates `f` seen from the origin (the shared fixture's `integrate`, posed).
     fn integrate(m: &mut SegmentMap, f: &Frame, e: &PixelEmbeddings) -> IntegrationStats {
-        m.integrate(&Observation {
-            frame: f,
-            pose: &Pose::identity(),
-            embeddings: Some(e),
-        })
-        .unwrap()
+        test_fixtures::integrate(m, f, &Pose::identity(), e)
     }
 
     #[test]

@@ -951,57 +951,11 @@ impl EmbeddingMap for VoxelMap {
 mod tests {
     use super::*;
     use crate::storage::Precision;
-    use vlem_core::{DepthImage, Frame, Intrinsics, Pose, RgbImage};
-
-    const DIM: usize = 4;
-    const W: u32 = 16;
-    const H: u32 = 12;
-
-    /// A 16x12 fronto-parallel plane; at 1 m a pixel covers 5 cm.
-    fn plane_with(depth: Vec<f32>) -> Frame {
-        let k = Intrinsics::new(W, H, 20.0, 20.0, 7.5, 5.5).unwrap();
-        Frame::new(
-            0,
-            0.0,
-            RgbImage::filled(W, H, [200, 100, 0]),
-            DepthImage::new(W, H, depth).unwrap(),
-            k,
-            None,
-        )
-        .unwrap()
-    }
-
-    fn plane(depth: f32) -> Frame {
-        plane_with(vec![depth; (W * H) as usize])
-    }
-
-    fn uniform(e: [f32; DIM]) -> PixelEmbeddings {
-        PixelEmbeddings::from_segments(W, H, DIM, vec![0; (W * H) as usize], e.to_vec()).unwrap()
-    }
+    use crate::test_fixtures::*;
+    use vlem_core::{PixelEmbeddings, Pose};
 
     fn map(config: VoxelConfig) -> VoxelMap {
         config.build(Some(DIM)).unwrap()
-    }
-
-    fn integrate(
-        m: &mut VoxelMap,
-        f: &Frame,
-        pose: &Pose,
-        e: &PixelEmbeddings,
-    ) -> IntegrationStats {
-        m.integrate(&Observation {
-            frame: f,
-            pose,
-            embeddings: Some(e),
-        })
-        .unwrap()
-    }
-
-    fn translated(x: f64) -> Pose {
-        Pose::from_parts(
-            nalgebra::Translation3::new(x, 0.0, 0.0),
-            nalgebra::UnitQuaternion::identity(),
-        )
     }
 
     fn assert_rows(m: &VoxelMap, expected: &[f32]) {
