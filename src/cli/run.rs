@@ -362,40 +362,6 @@ fn track_and_map(
     Ok(report)
 }
 
-/// The files a run writes into its output folder; [`clear_earlier_outputs`] removes an earlier
-/// run's before a run writes its own, so the folder never mixes two runs.
-const RUN_OUTPUTS: [&str; 5] = [
-    "stats.json",
-    "trajectory.tum",
-    "reference.tum",
-    "map.vlem",
-    "colour-model.ply",
-];
-
-/// Removes an earlier run's outputs (and its `query-*.ply` heatmaps) from `out`. `stats.json`
-/// goes first and is written last, so a folder with one holds one complete run.
-fn clear_earlier_outputs(out: &Path) -> Result<()> {
-    let remove = |path: &Path| match std::fs::remove_file(path) {
-        Err(e) if e.kind() != std::io::ErrorKind::NotFound => {
-            Err(e).with_context(|| format!("cannot remove the earlier run's {}", path.display()))
-        }
-        _ => Ok(()),
-    };
-    for name in RUN_OUTPUTS {
-        remove(&out.join(name))?;
-    }
-    if let Ok(entries) = std::fs::read_dir(out) {
-        for entry in entries.flatten() {
-            let name = entry.file_name();
-            let name = name.to_string_lossy();
-            if name.starts_with("query-") && name.ends_with(".ply") {
-                remove(&entry.path())?;
-            }
-        }
-    }
-    Ok(())
-}
-
 /// After a failed run: the map so far saved as OUT/map.vlem (nothing integrated is lost), said on
 /// stderr before the error itself, which is returned unchanged.
 fn save_after_failure(pipeline: &Pipeline, out: &Path, error: anyhow::Error) -> anyhow::Error {
@@ -405,7 +371,10 @@ fn save_after_failure(pipeline: &Pipeline, out: &Path, error: anyhow::Error) -> 
         return error;
     }
     let path = out.join("map.vlem");
-    match clear_earlier_outputs(out).and_then(|()| Ok(live.save(&path)?)) {
+    match vlem_eval::run_folder::clear_earlier_outputs(out)
+        .map_err(anyhow::Error::from)
+        .and_then(|()| Ok(live.save(&path)?))
+    {
         Ok(saved) => eprintln!(
             "vlem: the run failed after {frames} integrated frames; the map so far ({} points) is \
              saved in {}",
@@ -444,32 +413,14 @@ fn write_outputs(
     out: &Path,
     peak_device_bytes: Option<u64>,
 ) -> Result<()> {
-    clear_earlier_outputs(out)?;
-    vlem_datasets::trajectory::write_tum(&out.join("trajectory.tum"), &report.poses())?;
-    // The dataset's own poses beside the estimate, so `vlem eval trajectory` needs nothing else.
-    if let Some(reference) = report.reference_poses()
-        && !pipeline.tracker().needs_dataset_poses()
-    {
-        vlem_datasets::trajectory::write_tum(&out.join("reference.tum"), &reference)?;
-    }
-    let live = pipeline.live();
-    let saved = if live.has_map() {
-        Some(live.save(&out.join("map.vlem"))?)
-    } else {
-        None
-    };
-    let map = pipeline.map();
-    let mut stats = report.stats(
+    vlem_eval::run_folder::write_run(
+        out,
+        pipeline,
+        report,
         config.pipeline.mode,
-        map.as_deref(),
-        vlem_core::files::peak_resident_bytes(),
-    );
-    stats.peak_device_bytes = peak_device_bytes;
-    if let (Some(map_stats), Some(saved)) = (&mut stats.map, saved) {
-        map_stats.file_bytes = Some(saved.bytes);
-    }
-    let json = serde_json::to_string(&stats).context("cannot encode stats.json")?;
-    output::write_atomically(&out.join("stats.json"), json.as_bytes())?;
+        peak_device_bytes,
+    )?;
+    let map = pipeline.map();
     print_summary(report, map.as_deref(), out);
     Ok(())
 }

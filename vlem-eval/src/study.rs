@@ -565,10 +565,7 @@ fn run_cell_inner(dir: &Path, note: &(dyn Fn(&str) + Sync)) -> Result<()> {
             note(&format!("{} of {total} frames tracked", index + 1));
         }
     };
-    let run = pipeline.run(source.as_mut(), None, &on_progress)?;
-    vlem_datasets::trajectory::write_tum(&dir.join("trajectory.tum"), &run.poses())?;
-    let live = pipeline.live();
-    if !live.has_map() {
+    if !pipeline.live().has_map() {
         return Err(EvalError::Setup {
             message: format!(
                 "{} has no [map]: a study cell evaluates a map",
@@ -576,17 +573,9 @@ fn run_cell_inner(dir: &Path, note: &(dyn Fn(&str) + Sync)) -> Result<()> {
             ),
         });
     }
+    let run = pipeline.run(source.as_mut(), None, &on_progress)?;
     let map_path = dir.join("map.vlem");
-    live.save(&map_path)?;
-    let stats = {
-        let map = pipeline.map();
-        run.stats(
-            config.pipeline.mode,
-            map.as_deref(),
-            vlem_core::files::peak_resident_bytes(),
-        )
-    };
-    write_json(&dir.join("stats.json"), serde_json::to_string(&stats))?;
+    crate::run_folder::write_run(dir, &pipeline, &run, config.pipeline.mode, None)?;
     drop(pipeline);
 
     let mut input = SemsegInput::from_config_file(&config_path)?;

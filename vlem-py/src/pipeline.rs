@@ -383,13 +383,17 @@ impl PyPipeline {
     /// the next frame and raises ``KeyboardInterrupt``; the map up to then stays. ``progress`` is a
     /// callable receiving one dict per event (``{"event": "tracked" | "integrated" | "skipped",
     /// "index": ..., "map_len": ...}``) or a tqdm-like object (``update(1)`` per tracked frame).
-    #[pyo3(signature = (dataset = None, *, max_frames = None, progress = None))]
+    /// With ``out``, the run's outputs go into that folder as ``vlem run --out`` writes them
+    /// (``trajectory.tum``, ``reference.tum`` beside an estimate, ``map.vlem``, ``stats.json``
+    /// last), also when Ctrl-C ended it.
+    #[pyo3(signature = (dataset = None, *, max_frames = None, progress = None, out = None))]
     fn run<'py>(
         &self,
         py: Python<'py>,
         dataset: Option<PathBuf>,
         max_frames: Option<usize>,
         progress: Option<Bound<'py, PyAny>>,
+        out: Option<PathBuf>,
     ) -> PyResult<Bound<'py, PyAny>> {
         let dir = vlem_datasets::dataset_folder(&self.config, &self.ctx, dataset.as_deref())
             .map_err(errors::dataset)?;
@@ -416,6 +420,11 @@ impl PyPipeline {
         })?;
         let (outcome, interrupt) = run_interruptible(py, pipeline, source.as_mut(), &progress)?;
         let report = outcome.map_err(errors::core)?;
+        if let Some(folder) = &out {
+            let mode = self.config.pipeline.mode;
+            py.detach(|| vlem_eval::run_folder::write_run(folder, pipeline, &report, mode, None))
+                .map_err(errors::eval)?;
+        }
         let out = report_dict(py, pipeline, &self.config, &report)?;
         *lock(&self.report) = Some(report);
         // Ctrl-C (or another signal handler raising) ends the run early; the map stays.

@@ -33,6 +33,20 @@ def config(encoder=None, **map_params):
     }
 
 
+def test_a_run_writes_its_folder_as_vlem_run_does(tmp_path):
+    # The same outputs as `vlem run --out`, stats.json last and equal to what run() returns;
+    # a missing folder is created, an earlier run's heatmaps go.
+    out = tmp_path / "runs" / "demo"
+    out.mkdir(parents=True)
+    (out / "query-old.ply").write_bytes(b"earlier run")
+    stats = vlem.Pipeline(DEMO).run(max_frames=3, out=out)
+    assert sorted(p.name for p in out.iterdir()) == ["map.vlem", "stats.json", "trajectory.tum"]
+    written = json.loads((out / "stats.json").read_text())
+    assert written["frames"] == stats["frames"] and written["map"]["file_bytes"] == (out / "map.vlem").stat().st_size
+    assert len((out / "trajectory.tum").read_text().splitlines()) == 1 + 3
+    assert vlem.Map.load(out / "map.vlem").frames_integrated == 3
+
+
 def test_plugins_list_what_the_build_contains():
     names = {(p["stage"], p["name"]) for p in vlem.plugins()}
     assert ("encoder", "colour-names") in names

@@ -136,6 +136,7 @@ class Pipeline:
         *,
         max_frames: Optional[int] = None,
         progress: Optional[Progress] = None,
+        out: Optional[Union[str, os.PathLike]] = None,
     ) -> Dict[str, Any]: ...
     def start(
         self,
