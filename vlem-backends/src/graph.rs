@@ -1,7 +1,7 @@
 //! `graph`: the weight-free graph-based region proposer of Felzenszwalb and Huttenlocher
 //! (`[proposer] kind = "graph"`).
 //!
-//! Why it exists: segment encoders (`clip`, `onnx`) need regions, and SAM needs model weights and
+//! Why it exists: region encoders (`clip`, `onnx`) need regions, and SAM needs model weights and
 //! seconds per frame on a CPU. "Efficient Graph-Based Image Segmentation" (Felzenszwalb and
 //! Huttenlocher, IJCV 2004) needs neither: it gives a full partition of a 640×480 frame in about
 //! 50 ms on one core (about 15 ms with `downscale = 2`), so the segment path runs (and is tested)

@@ -17,7 +17,7 @@
 //!   a model folder.
 //! - `onnx` (feature `onnx`): module `onnx`, any CLIP-like image (and text) tower exported to
 //!   ONNX, on ONNX Runtime loaded at run time, configured in TOML only: a `global` output makes
-//!   it a segment encoder like `clip`, a `patch-grid` output a patch encoder. Needs
+//!   it a region encoder like `clip`, a `patch-grid` output a patch encoder. Needs
 //!   `python3 -m pip install --no-deps onnxruntime==1.31.1` (or `ORT_DYLIB_PATH`) and the `.onnx` files.
 //!
 //! - `graph` (feature `graph`, in the default build): module `graph`, the weight-free
@@ -25,7 +25,7 @@
 //! - `sam` (feature `sam`): module `sam`, the Segment Anything region proposer (ViT-B/L/H and
 //!   MobileSAM weights converted to safetensors) with the standard automatic mask generator and
 //!   the paper's fill-in refinement.
-//! - module `segment_crops` (always): the segment encoders' shared preprocessing (crop, background
+//! - module `segment_crops` (always): the region encoders' shared preprocessing (crop, background
 //!   strategy, bicubic resampling) and the smaller-segment-wins pixel assignment.
 //! - `dinov3` (feature `dinov3`): module `dinov3`, DINOv3 ViT-L/16 with Meta's dino.txt heads and
 //!   CLIP's BPE tokenizer on candle; a patch encoder: the whole frame's patch grid, interpolated
@@ -60,7 +60,7 @@ pub mod minilm;
 #[cfg(feature = "clip")]
 pub mod clip;
 
-// Always compiled: the shared preprocessing of the segment encoders (clip, onnx) and of the patch
+// Always compiled: the shared preprocessing of the region encoders (clip, onnx) and of the patch
 // encoders (onnx, dinov3, naradio), the prompt templates and text embedding cache of the text
 // sides, and the model file lookups of every backend that loads files.
 pub mod model_files;

@@ -3,7 +3,7 @@
 //! (`clip`, `onnx`).
 //!
 //! Why it exists: cropping, background replacement, resampling and normalisation decide what a
-//! segment encoder sees, and the paper ablates exactly these choices; written once here, every
+//! region encoder sees, and the paper ablates exactly these choices; written once here, every
 //! encoder makes them the same way and the ablation is a config switch. The module owns two steps:
 //!
 //! - [`crop_batch`]: region crops → an `N × 3 × size × size` batch for a vision tower;

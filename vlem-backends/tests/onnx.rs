@@ -514,7 +514,7 @@ fn build_patch_grid() -> Box<dyn Encoder> {
     Box::new(build(PATCHES))
 }
 
-/// The conformance suite on the `global` kind (a segment encoder with a text tower).
+/// The conformance suite on the `global` kind (a region encoder with a text tower).
 mod global {
     use super::*;
     vlem_testkit::encoder_conformance!(build_global, text = "red chair");

@@ -3,7 +3,7 @@
 //! A dense 640x480x512 f32 tensor is 600 MB per frame, so no encoder produces one. Encoders hand back
 //! embeddings in the layout they compute them in:
 //! - [`EmbeddingLayout::Segments`]: a per-pixel segment index and a table of one unit-norm embedding
-//!   per segment (segment encoders such as CLIP on SAM masks). Pixels in no segment have no embedding.
+//!   per segment (region encoders such as CLIP on SAM masks). Pixels in no segment have no embedding.
 //! - [`EmbeddingLayout::PatchGrid`]: a low-resolution grid of patch embeddings (ViT patch encoders),
 //!   bilinearly upsampled and L2-normalised only at the pixels that are looked up.
 //!

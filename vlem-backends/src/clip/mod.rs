@@ -157,7 +157,7 @@ pub fn read_normalisation(dir: &Path) -> Result<([f32; 3], [f32; 3]), BackendErr
     Ok((mean, std))
 }
 
-/// The CLIP segment encoder. See the [module documentation](self).
+/// The CLIP region encoder. See the [module documentation](self).
 #[derive(Debug)]
 pub struct ClipEncoder {
     model: ClipModel,

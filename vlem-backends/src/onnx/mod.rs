@@ -12,7 +12,7 @@
 //! Image side: the image model takes one float input `N × 3 × height × width` (normalised RGB,
 //! `(x / 255 - mean) / std` per channel) and gives one of two outputs, set by `output_kind`:
 //! - `"global"`: one embedding per image, `N × dim` (a CLIP image tower with its projection).
-//!   The encoder is then a segment encoder ([`Encoder::needs_regions`]): each region of the
+//!   The encoder is then a region encoder ([`Encoder::needs_regions`]): each region of the
 //!   frame is cropped, its background replaced as `background` says, resampled to `size × size`
 //!   ([`crate::segment_crops::crop_batch`]), embedded, and every pixel takes the embedding of
 //!   the smallest region covering it ([`crate::segment_crops::segment_embeddings`]).
@@ -86,7 +86,7 @@ pub const DEFAULT_MAX_LENGTH: usize = 77;
 #[derive(Clone, Copy, Debug, PartialEq, Eq, Deserialize)]
 #[serde(rename_all = "kebab-case")]
 pub enum OutputKind {
-    /// One embedding per image, `N × dim`: a segment encoder over region crops.
+    /// One embedding per image, `N × dim`: a region encoder over region crops.
     Global,
     /// One embedding per patch, `N × tokens × dim` or `N × h × w × dim`.
     PatchGrid,

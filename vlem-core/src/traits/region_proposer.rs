@@ -1,4 +1,4 @@
-//! `RegionProposer`: image regions for segment encoders.
+//! `RegionProposer`: image regions for region encoders.
 //!
 //! Why it exists: the paper's segment embeddings (section "Segment-Embeddings") encode one crop per
 //! region. Where the regions come from (SAM with fill-in refinement, a weight-free graph
