@@ -57,6 +57,16 @@ pub enum BackendError {
         /// What is wrong with it.
         reason: String,
     },
+    /// A model's `config.json` that is malformed or describes a model vlem does not run.
+    #[cfg(any(feature = "clip", feature = "dinov3"))]
+    #[error("model file {}: {source}", path.display())]
+    InvalidModelConfig {
+        /// The file.
+        path: PathBuf,
+        /// The key and what is wrong with it.
+        #[source]
+        source: crate::hf_config::HfConfigError,
+    },
     /// The model failed while running.
     #[error("{what}: {source}")]
     Inference {

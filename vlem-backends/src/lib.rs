@@ -60,6 +60,10 @@ pub mod minilm;
 #[cfg(feature = "clip")]
 pub mod clip;
 
+// Hugging Face `config.json` keys with defaults and typed errors (clip, dinov3).
+#[cfg(any(feature = "clip", feature = "dinov3"))]
+pub mod hf_config;
+
 // Always compiled: the shared preprocessing of the region encoders (clip, onnx) and of the patch
 // encoders (onnx, dinov3, naradio), the prompt templates and text embedding cache of the text
 // sides, and the model file lookups of every backend that loads files.

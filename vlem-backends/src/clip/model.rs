@@ -18,11 +18,11 @@ use std::path::{Path, PathBuf};
 
 use candle_core::{D, DType, Device, IndexOp, Module, Tensor};
 use candle_nn::{Embedding, LayerNorm, VarBuilder};
-use serde_json::{Map, Value};
 use tokenizers::{Tokenizer, TruncationParams};
 
 use crate::attention::Scores;
 use crate::error::BackendError;
+use crate::hf_config::{HfConfigError, Section};
 
 /// The model's name in messages.
 pub const MODEL: &str = "CLIP";
@@ -152,68 +152,48 @@ impl ClipConfig {
     /// `vision_config` as they do in `transformers`.
     ///
     /// # Errors
-    /// A message naming the key that is malformed or describes an unsupported model.
-    pub fn from_json(text: &str) -> Result<Self, String> {
-        let root: Value = serde_json::from_str(text).map_err(|e| format!("not JSON: {e}"))?;
-        let root = root
-            .as_object()
-            .ok_or_else(|| "not a JSON object".to_owned())?;
-        if let Some(kind) = root.get("model_type").and_then(Value::as_str)
-            && kind != "clip"
-        {
-            return Err(format!(
-                "model_type is {kind:?}; this encoder reads CLIPModel folders (model_type \"clip\")"
-            ));
-        }
-        let text = section(root, "text_config")?;
-        let vision = section(root, "vision_config")?;
-        let projection_dim = usize_key(root, "", "projection_dim", 512)?;
-
-        let text_act = str_key(&text, "text_config.", "hidden_act", "quick_gelu")?;
+    /// [`HfConfigError`] naming the key that is malformed or describes an unsupported model.
+    pub fn from_json(text: &str) -> Result<Self, HfConfigError> {
+        let root = Section::parse(text)?;
+        root.expect_model_type(
+            "clip",
+            "this encoder reads CLIPModel folders (model_type \"clip\")",
+        )?;
+        let text = root.section("text_config")?;
+        let vision = root.section("vision_config")?;
         let text = TextConfig {
-            vocab_size: usize_key(&text, "text_config.", "vocab_size", 49408)?,
-            hidden_size: usize_key(&text, "text_config.", "hidden_size", 512)?,
-            intermediate_size: usize_key(&text, "text_config.", "intermediate_size", 2048)?,
-            num_hidden_layers: usize_key(&text, "text_config.", "num_hidden_layers", 12)?,
-            num_attention_heads: usize_key(&text, "text_config.", "num_attention_heads", 8)?,
-            max_position_embeddings: usize_key(
-                &text,
-                "text_config.",
-                "max_position_embeddings",
-                77,
-            )?,
-            hidden_act: activation(&text_act, "text_config.hidden_act")?,
-            layer_norm_eps: f64_key(&text, "text_config.", "layer_norm_eps", 1e-5)?,
-            eos_token_id: match text.get("eos_token_id") {
-                None => 49407,
-                Some(v) => v.as_i64().ok_or_else(|| {
-                    format!("text_config.eos_token_id is {v}, expected one token id")
-                })?,
-            },
+            vocab_size: text.usize("vocab_size", 49408)?,
+            hidden_size: text.usize("hidden_size", 512)?,
+            intermediate_size: text.usize("intermediate_size", 2048)?,
+            num_hidden_layers: text.usize("num_hidden_layers", 12)?,
+            num_attention_heads: text.usize("num_attention_heads", 8)?,
+            max_position_embeddings: text.usize("max_position_embeddings", 77)?,
+            hidden_act: activation(&text, "quick_gelu")?,
+            layer_norm_eps: text.positive("layer_norm_eps", 1e-5)?,
+            eos_token_id: text.integer("eos_token_id", 49407)?,
         };
-        let vision_act = str_key(&vision, "vision_config.", "hidden_act", "quick_gelu")?;
         let vision = VisionConfig {
-            hidden_size: usize_key(&vision, "vision_config.", "hidden_size", 768)?,
-            intermediate_size: usize_key(&vision, "vision_config.", "intermediate_size", 3072)?,
-            num_hidden_layers: usize_key(&vision, "vision_config.", "num_hidden_layers", 12)?,
-            num_attention_heads: usize_key(&vision, "vision_config.", "num_attention_heads", 12)?,
-            num_channels: usize_key(&vision, "vision_config.", "num_channels", 3)?,
-            image_size: square_key(&vision, "image_size", 224)?,
-            patch_size: square_key(&vision, "patch_size", 32)?,
-            hidden_act: activation(&vision_act, "vision_config.hidden_act")?,
-            layer_norm_eps: f64_key(&vision, "vision_config.", "layer_norm_eps", 1e-5)?,
+            hidden_size: vision.usize("hidden_size", 768)?,
+            intermediate_size: vision.usize("intermediate_size", 3072)?,
+            num_hidden_layers: vision.usize("num_hidden_layers", 12)?,
+            num_attention_heads: vision.usize("num_attention_heads", 12)?,
+            num_channels: vision.usize("num_channels", 3)?,
+            image_size: vision.square("image_size", 224)?,
+            patch_size: vision.square("patch_size", 32)?,
+            hidden_act: activation(&vision, "quick_gelu")?,
+            layer_norm_eps: vision.positive("layer_norm_eps", 1e-5)?,
         };
         let config = Self {
             text,
             vision,
-            projection_dim,
+            projection_dim: root.usize("projection_dim", 512)?,
         };
         config.validate()?;
         Ok(config)
     }
 
     /// Checks the relations between values that the forward pass relies on.
-    fn validate(&self) -> Result<(), String> {
+    fn validate(&self) -> Result<(), HfConfigError> {
         let (t, v) = (&self.text, &self.vision);
         let positive = [
             ("projection_dim", self.projection_dim),
@@ -233,30 +213,30 @@ impl ClipConfig {
             ("vision_config.patch_size", v.patch_size),
         ];
         if let Some((key, _)) = positive.iter().find(|(_, n)| *n == 0) {
-            return Err(format!("{key} is 0"));
+            return Err(HfConfigError::Inconsistent(format!("{key} is 0")));
         }
         if !t.hidden_size.is_multiple_of(t.num_attention_heads) {
-            return Err(format!(
+            return Err(HfConfigError::Inconsistent(format!(
                 "text_config.hidden_size {} is not a multiple of num_attention_heads {}",
                 t.hidden_size, t.num_attention_heads
-            ));
+            )));
         }
         if !v.hidden_size.is_multiple_of(v.num_attention_heads) {
-            return Err(format!(
+            return Err(HfConfigError::Inconsistent(format!(
                 "vision_config.hidden_size {} is not a multiple of num_attention_heads {}",
                 v.hidden_size, v.num_attention_heads
-            ));
+            )));
         }
         if !v.image_size.is_multiple_of(v.patch_size) {
-            return Err(format!(
+            return Err(HfConfigError::Inconsistent(format!(
                 "vision_config.image_size {} is not a multiple of patch_size {}",
                 v.image_size, v.patch_size
-            ));
+            )));
         }
         if t.max_position_embeddings < 2 {
-            return Err(
+            return Err(HfConfigError::Inconsistent(
                 "text_config.max_position_embeddings is below 2 (start and end tokens)".into(),
-            );
+            ));
         }
         Ok(())
     }
@@ -267,91 +247,15 @@ impl ClipConfig {
     }
 }
 
-/// `root[key]` as an object (empty when absent), overridden key by key by `root[key_dict]`.
-fn section(root: &Map<String, Value>, key: &str) -> Result<Map<String, Value>, String> {
-    let mut out = match root.get(key) {
-        None | Some(Value::Null) => Map::new(),
-        Some(Value::Object(m)) => m.clone(),
-        Some(v) => return Err(format!("{key} is {v}, expected an object")),
-    };
-    match root.get(&format!("{key}_dict")) {
-        None | Some(Value::Null) => {}
-        Some(Value::Object(m)) => out.extend(m.clone()),
-        Some(v) => return Err(format!("{key}_dict is {v}, expected an object")),
-    }
-    Ok(out)
-}
-
-fn usize_key(
-    m: &Map<String, Value>,
-    prefix: &str,
-    key: &str,
-    default: usize,
-) -> Result<usize, String> {
-    match m.get(key) {
-        None | Some(Value::Null) => Ok(default),
-        Some(v) => v
-            .as_u64()
-            .and_then(|n| usize::try_from(n).ok())
-            .ok_or_else(|| format!("{prefix}{key} is {v}, expected a non-negative integer")),
-    }
-}
-
-fn f64_key(m: &Map<String, Value>, prefix: &str, key: &str, default: f64) -> Result<f64, String> {
-    match m.get(key) {
-        None | Some(Value::Null) => Ok(default),
-        Some(v) => v
-            .as_f64()
-            .filter(|x| x.is_finite() && *x > 0.0)
-            .ok_or_else(|| format!("{prefix}{key} is {v}, expected a positive number")),
-    }
-}
-
-fn str_key(
-    m: &Map<String, Value>,
-    prefix: &str,
-    key: &str,
-    default: &str,
-) -> Result<String, String> {
-    match m.get(key) {
-        None | Some(Value::Null) => Ok(default.to_owned()),
-        Some(Value::String(s)) => Ok(s.clone()),
-        Some(v) => Err(format!("{prefix}{key} is {v}, expected a string")),
-    }
-}
-
-/// A vision size that `transformers` accepts as an integer or a `[height, width]` pair; only
-/// square sizes are supported.
-fn square_key(m: &Map<String, Value>, key: &str, default: usize) -> Result<usize, String> {
-    let bad = |v: &Value| format!("vision_config.{key} is {v}, expected an integer");
-    match m.get(key) {
-        None | Some(Value::Null) => Ok(default),
-        Some(Value::Array(pair)) => {
-            let sides: Vec<usize> = pair
-                .iter()
-                .map(|s| s.as_u64().and_then(|n| usize::try_from(n).ok()))
-                .collect::<Option<_>>()
-                .ok_or_else(|| bad(&Value::Array(pair.clone())))?;
-            match sides.as_slice() {
-                [h, w] if h == w => Ok(*h),
-                _ => Err(format!(
-                    "vision_config.{key} is {sides:?}; only square sizes are supported"
-                )),
-            }
-        }
-        Some(v) => v
-            .as_u64()
-            .and_then(|n| usize::try_from(n).ok())
-            .ok_or_else(|| bad(v)),
-    }
-}
-
-fn activation(name: &str, key: &str) -> Result<Activation, String> {
-    Activation::from_hf_name(name).ok_or_else(|| {
-        format!(
-            "{key} is {name:?}; supported: \"quick_gelu\", \"gelu\", \"gelu_new\", \
-             \"gelu_pytorch_tanh\", \"gelu_fast\""
-        )
+/// The section's `hidden_act`.
+fn activation(section: &Section, default: &str) -> Result<Activation, HfConfigError> {
+    let name = section.string("hidden_act", default)?;
+    Activation::from_hf_name(&name).ok_or_else(|| HfConfigError::Unsupported {
+        key: section.name("hidden_act"),
+        found: format!("{name:?}"),
+        reason: "supported: \"quick_gelu\", \"gelu\", \"gelu_new\", \"gelu_pytorch_tanh\", \
+                 \"gelu_fast\""
+            .to_owned(),
     })
 }
 
@@ -707,9 +611,9 @@ impl ClipModel {
         let config_path = dir.join("config.json");
         let text = crate::model_files::read_text(&config_path)?;
         let config =
-            ClipConfig::from_json(&text).map_err(|reason| BackendError::InvalidModelFile {
+            ClipConfig::from_json(&text).map_err(|source| BackendError::InvalidModelConfig {
                 path: config_path.clone(),
-                reason,
+                source,
             })?;
 
         let tokenizer_path = dir.join("tokenizer.json");
@@ -987,7 +891,7 @@ mod tests {
 
     #[test]
     fn bad_configs_name_the_key() {
-        let err = |json: &str| ClipConfig::from_json(json).unwrap_err();
+        let err = |json: &str| ClipConfig::from_json(json).unwrap_err().to_string();
         assert!(err(r#"{"model_type": "siglip"}"#).contains("model_type is \"siglip\""));
         assert!(
             err(r#"{"vision_config": {"hidden_act": "relu"}}"#)
@@ -1007,7 +911,7 @@ mod tests {
                 .contains("text_config.eos_token_id")
         );
         assert!(err(r#"{"projection_dim": -1}"#).contains("projection_dim is -1"));
-        assert!(err("[1]").contains("not a JSON object"));
+        assert!(err("[1]").contains("expected an object"));
     }
 
     #[test]

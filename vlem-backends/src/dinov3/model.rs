@@ -26,9 +26,9 @@
 
 use std::path::{Path, PathBuf};
 
+use crate::hf_config::{HfConfigError, Section};
 use candle_core::{DType, Device, Tensor};
 use candle_nn::{LayerNorm, Module};
-use serde_json::{Map, Value};
 
 use crate::error::BackendError;
 pub use crate::vit::{Activation, rope_angles};
@@ -115,53 +115,46 @@ impl Dinov3Config {
     /// augmentations, backbone outputs) are ignored: real files carry them.
     ///
     /// # Errors
-    /// A message naming the key that is malformed or describes an unsupported model.
-    pub fn from_json(text: &str) -> Result<Self, String> {
-        let root: Value = serde_json::from_str(text).map_err(|e| format!("not JSON: {e}"))?;
-        let m = root
-            .as_object()
-            .ok_or_else(|| "not a JSON object".to_owned())?;
-        if let Some(kind) = m.get("model_type").and_then(Value::as_str)
-            && kind != "dinov3_vit"
-        {
-            return Err(format!(
-                "model_type is {kind:?}; this backbone reads DINOv3ViTModel folders (model_type \
-                 \"dinov3_vit\"; the ConvNeXt DINOv3 models are not supported)"
-            ));
-        }
+    /// [`HfConfigError`] naming the key that is malformed or describes an unsupported model.
+    pub fn from_json(text: &str) -> Result<Self, HfConfigError> {
+        let m = Section::parse(text)?;
+        m.expect_model_type(
+            "dinov3_vit",
+            "this backbone reads DINOv3ViTModel folders (model_type \"dinov3_vit\"; the ConvNeXt \
+             DINOv3 models are not supported)",
+        )?;
         let d = Self::default();
-        let act_name = match m.get("hidden_act") {
-            None | Some(Value::Null) => "gelu".to_owned(),
-            Some(Value::String(s)) => s.clone(),
-            Some(v) => return Err(format!("hidden_act is {v}, expected a string")),
-        };
-        let hidden_act = Activation::from_hf_name(&act_name).ok_or_else(|| {
-            format!("hidden_act is {act_name:?}; supported: gelu, gelu_pytorch_tanh, silu")
-        })?;
+        let act_name = m.string("hidden_act", "gelu")?;
+        let hidden_act =
+            Activation::from_hf_name(&act_name).ok_or_else(|| HfConfigError::Unsupported {
+                key: m.name("hidden_act"),
+                found: format!("{act_name:?}"),
+                reason: "supported: gelu, gelu_pytorch_tanh, silu".to_owned(),
+            })?;
         let config = Self {
-            patch_size: square(m, "patch_size", d.patch_size)?,
-            hidden_size: usize_key(m, "hidden_size", d.hidden_size)?,
-            intermediate_size: usize_key(m, "intermediate_size", d.intermediate_size)?,
-            num_hidden_layers: usize_key(m, "num_hidden_layers", d.num_hidden_layers)?,
-            num_attention_heads: usize_key(m, "num_attention_heads", d.num_attention_heads)?,
-            num_register_tokens: usize_key(m, "num_register_tokens", d.num_register_tokens)?,
-            num_channels: usize_key(m, "num_channels", d.num_channels)?,
+            patch_size: m.square("patch_size", d.patch_size)?,
+            hidden_size: m.usize("hidden_size", d.hidden_size)?,
+            intermediate_size: m.usize("intermediate_size", d.intermediate_size)?,
+            num_hidden_layers: m.usize("num_hidden_layers", d.num_hidden_layers)?,
+            num_attention_heads: m.usize("num_attention_heads", d.num_attention_heads)?,
+            num_register_tokens: m.usize("num_register_tokens", d.num_register_tokens)?,
+            num_channels: m.usize("num_channels", d.num_channels)?,
             hidden_act,
-            layer_norm_eps: positive_key(m, "layer_norm_eps", d.layer_norm_eps)?,
-            rope_theta: positive_key(m, "rope_theta", d.rope_theta)?,
-            query_bias: bool_key(m, "query_bias", d.query_bias)?,
-            key_bias: bool_key(m, "key_bias", d.key_bias)?,
-            value_bias: bool_key(m, "value_bias", d.value_bias)?,
-            proj_bias: bool_key(m, "proj_bias", d.proj_bias)?,
-            mlp_bias: bool_key(m, "mlp_bias", d.mlp_bias)?,
-            use_gated_mlp: bool_key(m, "use_gated_mlp", d.use_gated_mlp)?,
+            layer_norm_eps: m.positive("layer_norm_eps", d.layer_norm_eps)?,
+            rope_theta: m.positive("rope_theta", d.rope_theta)?,
+            query_bias: m.bool("query_bias", d.query_bias)?,
+            key_bias: m.bool("key_bias", d.key_bias)?,
+            value_bias: m.bool("value_bias", d.value_bias)?,
+            proj_bias: m.bool("proj_bias", d.proj_bias)?,
+            mlp_bias: m.bool("mlp_bias", d.mlp_bias)?,
+            use_gated_mlp: m.bool("use_gated_mlp", d.use_gated_mlp)?,
         };
         config.validate()?;
         Ok(config)
     }
 
     /// Checks the relations between values that the forward pass relies on.
-    pub fn validate(&self) -> Result<(), String> {
+    pub fn validate(&self) -> Result<(), HfConfigError> {
         let positive = [
             ("patch_size", self.patch_size),
             ("hidden_size", self.hidden_size),
@@ -170,20 +163,20 @@ impl Dinov3Config {
             ("num_channels", self.num_channels),
         ];
         if let Some((key, _)) = positive.iter().find(|(_, n)| *n == 0) {
-            return Err(format!("{key} is 0"));
+            return Err(HfConfigError::Inconsistent(format!("{key} is 0")));
         }
         if !self.hidden_size.is_multiple_of(self.num_attention_heads) {
-            return Err(format!(
+            return Err(HfConfigError::Inconsistent(format!(
                 "hidden_size {} is not a multiple of num_attention_heads {}",
                 self.hidden_size, self.num_attention_heads
-            ));
+            )));
         }
         if !self.head_dim().is_multiple_of(4) {
-            return Err(format!(
+            return Err(HfConfigError::Inconsistent(format!(
                 "the head dimension hidden_size / num_attention_heads = {} is not a multiple of \
                  4, which 2-D RoPE needs",
                 self.head_dim()
-            ));
+            )));
         }
         Ok(())
     }
@@ -196,60 +189,6 @@ impl Dinov3Config {
     /// Tokens before the patches: CLS and the registers.
     pub fn prefix_tokens(&self) -> usize {
         1 + self.num_register_tokens
-    }
-}
-
-fn usize_key(m: &Map<String, Value>, key: &str, default: usize) -> Result<usize, String> {
-    match m.get(key) {
-        None | Some(Value::Null) => Ok(default),
-        Some(v) => v
-            .as_u64()
-            .and_then(|n| usize::try_from(n).ok())
-            .ok_or_else(|| format!("{key} is {v}, expected a non-negative integer")),
-    }
-}
-
-fn positive_key(m: &Map<String, Value>, key: &str, default: f64) -> Result<f64, String> {
-    match m.get(key) {
-        None | Some(Value::Null) => Ok(default),
-        Some(v) => v
-            .as_f64()
-            .filter(|x| x.is_finite() && *x > 0.0)
-            .ok_or_else(|| format!("{key} is {v}, expected a positive number")),
-    }
-}
-
-fn bool_key(m: &Map<String, Value>, key: &str, default: bool) -> Result<bool, String> {
-    match m.get(key) {
-        None | Some(Value::Null) => Ok(default),
-        Some(v) => v
-            .as_bool()
-            .ok_or_else(|| format!("{key} is {v}, expected true or false")),
-    }
-}
-
-/// A size that `transformers` accepts as an integer or a `[height, width]` pair; only square
-/// ones are supported.
-fn square(m: &Map<String, Value>, key: &str, default: usize) -> Result<usize, String> {
-    match m.get(key) {
-        None | Some(Value::Null) => Ok(default),
-        Some(Value::Array(pair)) => {
-            let sides: Option<Vec<usize>> = pair
-                .iter()
-                .map(|s| s.as_u64().and_then(|n| usize::try_from(n).ok()))
-                .collect();
-            match sides.as_deref() {
-                Some([h, w]) if h == w => Ok(*h),
-                _ => Err(format!(
-                    "{key} is {}, expected an integer or a square [n, n] pair",
-                    Value::Array(pair.clone())
-                )),
-            }
-        }
-        Some(v) => v
-            .as_u64()
-            .and_then(|n| usize::try_from(n).ok())
-            .ok_or_else(|| format!("{key} is {v}, expected an integer")),
     }
 }
 
@@ -347,9 +286,9 @@ impl Dinov3Backbone {
         let config_path = dir.join("config.json");
         let text = crate::model_files::read_text(&config_path)?;
         let config =
-            Dinov3Config::from_json(&text).map_err(|reason| BackendError::InvalidModelFile {
+            Dinov3Config::from_json(&text).map_err(|source| BackendError::InvalidModelConfig {
                 path: config_path.clone(),
-                reason,
+                source,
             })?;
         let weights_path = dir.join("model.safetensors");
         let tensors = candle_core::safetensors::load(&weights_path, device).map_err(|e| {
@@ -389,7 +328,7 @@ impl Dinov3Backbone {
         w: &Weights,
         prefix: &str,
     ) -> Result<Self, String> {
-        config.validate()?;
+        config.validate().map_err(|e| e.to_string())?;
         let c = config;
         let hidden = c.hidden_size;
         let p = c.patch_size;
@@ -573,14 +512,21 @@ mod tests {
 
     #[test]
     fn bad_configs_name_the_key() {
-        let e = Dinov3Config::from_json(r#"{"model_type": "dinov2"}"#).unwrap_err();
+        let e = Dinov3Config::from_json(r#"{"model_type": "dinov2"}"#)
+            .unwrap_err()
+            .to_string();
         assert!(e.contains("dinov2"), "{e}");
-        let e = Dinov3Config::from_json(r#"{"hidden_act": "relu"}"#).unwrap_err();
+        let e = Dinov3Config::from_json(r#"{"hidden_act": "relu"}"#)
+            .unwrap_err()
+            .to_string();
         assert!(e.contains("relu"), "{e}");
         let e = Dinov3Config::from_json(r#"{"hidden_size": 40, "num_attention_heads": 4}"#)
-            .unwrap_err();
+            .unwrap_err()
+            .to_string();
         assert!(e.contains("multiple of 4"), "{e}");
-        let e = Dinov3Config::from_json(r#"{"patch_size": [16, 8]}"#).unwrap_err();
+        let e = Dinov3Config::from_json(r#"{"patch_size": [16, 8]}"#)
+            .unwrap_err()
+            .to_string();
         assert!(e.contains("patch_size"), "{e}");
         assert_eq!(
             Dinov3Config::from_json(r#"{"patch_size": [14, 14]}"#)
