@@ -34,8 +34,8 @@ pub use traits::region_proposer::RegionProposer;
 pub use traits::segmenter::{PointSet, QueryScores, Segmenter};
 pub use traits::tracker::{TrackedPose, Tracker, TrackingState};
 pub use types::{
-    ColouredMesh, DepthImage, Frame, Intrinsics, LabelImage, LabelNames, PixelRect, Pose, Region,
-    RgbImage, RigidF32,
+    ColouredMesh, DepthImage, Frame, Intrinsics, LabelImage, LabelNames, PinholeF32, PixelRect,
+    Pose, Region, RgbImage, RigidF32,
 };
 
 #[doc(hidden)]

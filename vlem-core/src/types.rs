@@ -541,6 +541,43 @@ impl Region {
     }
 }
 
+/// Pinhole parameters in `f32` for per-pixel hot loops (intrinsics are `f64` everywhere else):
+/// the one `f32` camera of the trackers' pyramids and TSDF, the maps' back-projection and the
+/// point cloud's projective association.
+#[derive(Clone, Copy, Debug, Default, PartialEq)]
+pub struct PinholeF32 {
+    /// Focal length along x (pixels).
+    pub fx: f32,
+    /// Focal length along y (pixels).
+    pub fy: f32,
+    /// Principal point x (pixels).
+    pub cx: f32,
+    /// Principal point y (pixels).
+    pub cy: f32,
+}
+
+impl PinholeF32 {
+    /// `k`'s focal lengths and principal point, rounded to `f32`.
+    pub fn from_intrinsics(k: &Intrinsics) -> Self {
+        Self {
+            fx: k.fx as f32,
+            fy: k.fy as f32,
+            cx: k.cx as f32,
+            cy: k.cy as f32,
+        }
+    }
+
+    /// Every parameter times `factor` (0.5: one level down an image pyramid).
+    pub fn scaled(&self, factor: f32) -> Self {
+        Self {
+            fx: self.fx * factor,
+            fy: self.fy * factor,
+            cx: self.cx * factor,
+            cy: self.cy * factor,
+        }
+    }
+}
+
 /// A rigid transform in `f32` for per-pixel hot loops (poses are `f64` everywhere else): the
 /// rotation as rows and the translation, so `apply` is `R p + t`.
 #[derive(Clone, Copy, Debug, PartialEq)]

@@ -11,7 +11,9 @@ use std::ops::Range;
 
 use rayon::prelude::*;
 use vlem_core::types::valid_depth;
-use vlem_core::{DepthImage, Intrinsics, Observation, PixelEmbeddings, Pose, RgbImage, RigidF32};
+use vlem_core::{
+    DepthImage, Intrinsics, Observation, PinholeF32, PixelEmbeddings, Pose, RgbImage, RigidF32,
+};
 
 use super::config::MapCommon;
 
@@ -50,10 +52,7 @@ pub struct FramePixels<'a> {
     depth: &'a [f32],
     width: u32,
     height: u32,
-    fx: f32,
-    fy: f32,
-    cx: f32,
-    cy: f32,
+    k: PinholeF32,
     to_world: RigidF32,
     max_depth: f32,
     stride: u32,
@@ -91,10 +90,7 @@ impl<'a> FramePixels<'a> {
             depth: depth.as_raw(),
             width: depth.width(),
             height: depth.height(),
-            fx: intrinsics.fx as f32,
-            fy: intrinsics.fy as f32,
-            cx: intrinsics.cx as f32,
-            cy: intrinsics.cy as f32,
+            k: PinholeF32::from_intrinsics(intrinsics),
             to_world: RigidF32::from_pose(pose),
             max_depth: f32::INFINITY,
             stride: stride.max(1),
@@ -204,8 +200,8 @@ impl<'a> FramePixels<'a> {
     fn pixel(&self, u: u32, v: u32) -> Option<Pixel> {
         let z = self.kept_depth(u, v)?;
         let camera = [
-            (u as f32 - self.cx) * z / self.fx,
-            (v as f32 - self.cy) * z / self.fy,
+            (u as f32 - self.k.cx) * z / self.k.fx,
+            (v as f32 - self.k.cy) * z / self.k.fy,
             z,
         ];
         Some(Pixel {

@@ -24,7 +24,7 @@ mod wide;
 
 use kiddo::{ImmutableKdTree, SquaredEuclidean};
 use rayon::prelude::*;
-use vlem_core::{Intrinsics, RigidF32};
+use vlem_core::{Intrinsics, PinholeF32, RigidF32};
 
 /// How a map point finds its correspondence in a new frame (`[map] association`).
 #[derive(Clone, Copy, Debug, Default, PartialEq, Eq, serde::Deserialize)]
@@ -156,10 +156,7 @@ impl ProjectiveSearch<'_, '_> {
 struct Projector {
     /// World to camera.
     to_camera: RigidF32,
-    fx: f32,
-    fy: f32,
-    cx: f32,
-    cy: f32,
+    k: PinholeF32,
     /// The image's size less half a pixel: a projection in view is below it.
     u_end: f32,
     v_end: f32,
@@ -170,10 +167,7 @@ impl Projector {
         let k = view.intrinsics;
         Self {
             to_camera: view.to_camera,
-            fx: k.fx as f32,
-            fy: k.fy as f32,
-            cx: k.cx as f32,
-            cy: k.cy as f32,
+            k: PinholeF32::from_intrinsics(k),
             u_end: k.width as f32 - 0.5,
             v_end: k.height as f32 - 0.5,
         }
@@ -190,7 +184,7 @@ impl Projector {
         }
         let inverse_depth = 1.0 / c[2];
         let (x, y) = (c[0] * inverse_depth, c[1] * inverse_depth);
-        let (u, v) = (self.fx * x + self.cx, self.fy * y + self.cy);
+        let (u, v) = (self.k.fx * x + self.k.cx, self.k.fy * y + self.k.cy);
         if !(u >= -0.5 && v >= -0.5 && u < self.u_end && v < self.v_end) {
             return None;
         }

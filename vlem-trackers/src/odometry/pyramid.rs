@@ -8,40 +8,7 @@
 //! gradients are 3×3 Sobel responses scaled by 1/8; intrinsics halve with each level.
 
 use rayon::prelude::*;
-use vlem_core::{DepthImage, Intrinsics, RgbImage};
-
-/// Pinhole parameters of one pyramid level, in f32 for the inner loops.
-#[derive(Clone, Copy, Debug, Default, PartialEq)]
-pub struct Camera {
-    /// Focal length along x (pixels).
-    pub fx: f32,
-    /// Focal length along y (pixels).
-    pub fy: f32,
-    /// Principal point x (pixels).
-    pub cx: f32,
-    /// Principal point y (pixels).
-    pub cy: f32,
-}
-
-impl Camera {
-    fn from_intrinsics(k: &Intrinsics) -> Self {
-        Self {
-            fx: k.fx as f32,
-            fy: k.fy as f32,
-            cx: k.cx as f32,
-            cy: k.cy as f32,
-        }
-    }
-
-    fn halved(&self) -> Self {
-        Self {
-            fx: self.fx * 0.5,
-            fy: self.fy * 0.5,
-            cx: self.cx * 0.5,
-            cy: self.cy * 0.5,
-        }
-    }
-}
+use vlem_core::{DepthImage, Intrinsics, PinholeF32, RgbImage};
 
 /// What a pixel offers as the *target* of a projective association.
 ///
@@ -81,7 +48,7 @@ pub struct Level {
     /// Height in pixels.
     pub height: usize,
     /// The level's pinhole parameters.
-    pub camera: Camera,
+    pub camera: PinholeF32,
     /// Row-major target records.
     pub target: Vec<TargetPixel>,
     /// Unit normals (camera frame) from the smoothed depth, for point-to-plane; NaN where
@@ -164,7 +131,7 @@ impl Pyramid {
         let first = &mut self.levels[0];
         first.width = depth.width() as usize;
         first.height = depth.height() as usize;
-        first.camera = Camera::from_intrinsics(intrinsics);
+        first.camera = PinholeF32::from_intrinsics(intrinsics);
         first.depth.clear();
         first.depth.extend(depth.as_raw().iter().map(|&d| {
             if d.is_finite() && d > 0.0 && d <= depth_max {
@@ -186,7 +153,7 @@ impl Pyramid {
             let (from, to) = (&finer[level - 1], &mut coarser[0]);
             to.width = from.width / 2;
             to.height = from.height / 2;
-            to.camera = from.camera.halved();
+            to.camera = from.camera.scaled(0.5);
             pyr_down_depth_into(
                 &from.depth,
                 from.width,
@@ -505,7 +472,7 @@ fn normal_map_into(
     depth: &[f32],
     width: usize,
     height: usize,
-    camera: Camera,
+    camera: PinholeF32,
     normals: &mut Vec<[f32; 3]>,
 ) {
     let point = |x: usize, y: usize| -> [f32; 3] {

@@ -133,7 +133,7 @@ impl TsdfVolume {
                     let Some(row) = depth.get(v * cam.width..(v + 1) * cam.width) else {
                         continue;
                     };
-                    let ray_y = (v as f32 - cam.cy) / cam.fy;
+                    let ray_y = (v as f32 - cam.k.cy) / cam.k.fy;
                     for &u in &columns {
                         let Some(&d) = row.get(u) else {
                             continue;
@@ -141,7 +141,7 @@ impl TsdfVolume {
                         if !(d >= depth_min && d <= depth_max) {
                             continue;
                         }
-                        let ray_c = [(u as f32 - cam.cx) / cam.fx, ray_y, 1.0];
+                        let ray_c = [(u as f32 - cam.k.cx) / cam.k.fx, ray_y, 1.0];
                         let ray_w = pose.rotate(ray_c);
                         let ray_len = (ray_c[0] * ray_c[0] + ray_c[1] * ray_c[1] + 1.0).sqrt();
                         let z0 = (d - trunc).max(1e-3);
@@ -208,8 +208,8 @@ fn image_order(block: &Block, p: &FuseParams<'_>) -> u32 {
         return u32::MAX;
     }
     let cam = &p.camera;
-    let u = (cam.fx * c[0] / c[2] + cam.cx) / SORT_TILE;
-    let v = (cam.fy * c[1] / c[2] + cam.cy) / SORT_TILE;
+    let u = (cam.k.fx * c[0] / c[2] + cam.k.cx) / SORT_TILE;
+    let v = (cam.k.fy * c[1] / c[2] + cam.k.cy) / SORT_TILE;
     // Clamped to the tile grid (plus a border row/column), so the casts are exact.
     let tiles_x = cam.width as f32 / SORT_TILE + 2.0;
     let tiles_y = cam.height as f32 / SORT_TILE + 2.0;
@@ -250,8 +250,8 @@ impl BlockFrame {
             neg_trunc: -p.trunc,
             width: p.camera.width as f32,
             height: p.camera.height as f32,
-            cx: p.camera.cx + 0.5,
-            cy: p.camera.cy + 0.5,
+            cx: p.camera.k.cx + 0.5,
+            cy: p.camera.k.cy + 0.5,
             max_weight: f32::from(p.max_weight),
         }
     }
@@ -283,8 +283,8 @@ fn update_block(block: &mut Block, p: &FuseParams<'_>) {
                 let fx = x as f32;
                 let pz = row[2] + fx * f.dx[2];
                 let inv_z = 1.0 / pz;
-                let uf = cam.fx * (row[0] + fx * f.dx[0]) * inv_z + f.cx;
-                let vf = cam.fy * (row[1] + fx * f.dx[1]) * inv_z + f.cy;
+                let uf = cam.k.fx * (row[0] + fx * f.dx[0]) * inv_z + f.cx;
+                let vf = cam.k.fy * (row[1] + fx * f.dx[1]) * inv_z + f.cy;
                 let inside = pz > 0.0 && uf >= 0.0 && vf >= 0.0 && uf < f.width && vf < f.height;
                 // Non-negative and below the image size where used, so the casts are exact
                 // there (and saturate elsewhere). Via i32, which x86-64 converts to in one
@@ -464,8 +464,8 @@ mod wide {
                         let along = _mm256_mul_ps(splat(focal), _mm256_add_ps(splat(start), step));
                         _mm256_add_ps(_mm256_mul_ps(along, inv_z), splat(centre))
                     };
-                    let uf = project(cam.fx, row[0], step[0], f.cx);
-                    let vf = project(cam.fy, row[1], step[1], f.cy);
+                    let uf = project(cam.k.fx, row[0], step[0], f.cx);
+                    let vf = project(cam.k.fy, row[1], step[1], f.cy);
                     let inside = _mm256_and_ps(
                         _mm256_and_ps(
                             _mm256_cmp_ps::<_CMP_GT_OQ>(pz, zero),

@@ -56,7 +56,7 @@ use std::fmt;
 
 use rustc_hash::FxHashMap;
 use vlem_core::types::pose_is_finite;
-use vlem_core::{DepthImage, Intrinsics, Pose, RgbImage};
+use vlem_core::{DepthImage, Intrinsics, PinholeF32, Pose, RgbImage};
 
 use crate::error::TrackerError;
 use block::{BLOCK_RES, Block};
@@ -193,15 +193,12 @@ impl TsdfConfig {
     }
 }
 
-/// Pinhole intrinsics in `f32`.
+/// Pinhole intrinsics in `f32`, with the image size.
 #[derive(Clone, Copy, Debug)]
 pub(crate) struct Camera32 {
     width: usize,
     height: usize,
-    fx: f32,
-    fy: f32,
-    cx: f32,
-    cy: f32,
+    k: PinholeF32,
 }
 
 impl Camera32 {
@@ -209,10 +206,7 @@ impl Camera32 {
         Self {
             width: k.width as usize,
             height: k.height as usize,
-            fx: k.fx as f32,
-            fy: k.fy as f32,
-            cx: k.cx as f32,
-            cy: k.cy as f32,
+            k: PinholeF32::from_intrinsics(k),
         }
     }
 }

@@ -188,8 +188,8 @@ impl RangeMap {
         let (mut v_min, mut v_max) = (f32::INFINITY, f32::NEG_INFINITY);
         let cam = &ctx.camera;
         let mut add = |p: [f32; 3]| {
-            let u = cam.fx * p[0] / p[2] + cam.cx;
-            let v = cam.fy * p[1] / p[2] + cam.cy;
+            let u = cam.k.fx * p[0] / p[2] + cam.k.cx;
+            let v = cam.k.fy * p[1] / p[2] + cam.k.cy;
             z_min = z_min.min(p[2]);
             z_max = z_max.max(p[2]);
             u_min = u_min.min(u);
@@ -562,8 +562,8 @@ impl<'a> March<'a> {
         }
         let cam = &ctx.camera;
         let ray_c = [
-            (u as f32 - cam.cx) / cam.fx,
-            (v as f32 - cam.cy) / cam.fy,
+            (u as f32 - cam.k.cx) / cam.k.fx,
+            (v as f32 - cam.k.cy) / cam.k.fy,
             1.0,
         ];
         let ray_len = (ray_c[0] * ray_c[0] + ray_c[1] * ray_c[1] + 1.0).sqrt();
@@ -901,8 +901,8 @@ impl TsdfVolume {
             let steepest = |size: usize, c: f32, f: f32| {
                 (c.abs().max((size as f32 - 1.0 - c).abs()) / f).min(1e3)
             };
-            let tan_x = steepest(camera.width, camera.cx, camera.fx);
-            let tan_y = steepest(camera.height, camera.cy, camera.fy);
+            let tan_x = steepest(camera.width, camera.k.cx, camera.k.fx);
+            let tan_y = steepest(camera.height, camera.k.cy, camera.k.fy);
             let longest = (tan_x * tan_x + tan_y * tan_y + 1.0).sqrt();
             let reach = (longest * self.config.depth_max * inv_voxel_size + 64.0).min(1e9);
             let bias = (reach as u32).next_power_of_two().min(1 << 30) as i32;
