@@ -565,13 +565,14 @@ fn build_error(toml_text: &str, ctx: &BuildContext) -> String {
 fn config_defaults_and_refusals() {
     let c: SamConfig = toml::from_str("weights = \"w.safetensors\"").unwrap();
     assert_eq!(c.variant, SamVariant::MobileSam);
-    assert_eq!(c.points_per_side, 32);
-    assert!(c.refine);
-    assert_eq!(c.refine_points, 32);
-    assert_eq!(c.params().unwrap(), GeneratorParams::default());
+    assert_eq!(c.generator.points_per_side, 32);
+    assert!(c.generator.refine);
+    assert_eq!(c.generator.refine_points, 32);
+    c.generator.check().unwrap();
+    assert_eq!(c.generator, GeneratorParams::default());
     let c: SamConfig = toml::from_str("variant = \"vit-b\"\nrefine = false").unwrap();
     assert_eq!(c.variant, SamVariant::VitB);
-    assert!(!c.refine);
+    assert!(!c.generator.refine);
 
     let ctx = BuildContext::default();
     let e = build_error("kind = \"sam\"\nweights = \"w\"\npoints = 3", &ctx);

@@ -78,7 +78,7 @@ use model::{EncoderConfig, SamModel};
 pub const NAME: &str = "sam";
 
 /// Which SAM checkpoint the weights are.
-#[derive(Clone, Copy, Debug, PartialEq, Eq, Deserialize)]
+#[derive(Clone, Copy, Debug, Default, PartialEq, Eq, Deserialize)]
 #[serde(rename_all = "kebab-case")]
 pub enum SamVariant {
     /// SAM ViT-B (`sam_vit_b_01ec64.pth`).
@@ -87,7 +87,8 @@ pub enum SamVariant {
     VitL,
     /// SAM ViT-H (`sam_vit_h_4b8939.pth`).
     VitH,
-    /// MobileSAM (`mobile_sam.pt`, TinyViT encoder).
+    /// MobileSAM (`mobile_sam.pt`, TinyViT encoder): the default.
+    #[default]
     MobileSam,
 }
 
@@ -143,15 +144,63 @@ pub fn weights_hint(variant: SamVariant, path: &Path) -> String {
     )
 }
 
-/// Parameters of the proposer: the `[proposer]` section without `kind`.
-#[derive(Clone, Debug, PartialEq, Deserialize)]
-#[serde(deny_unknown_fields, default)]
+/// Parameters of the proposer: the `[proposer]` section without `kind`: the model's keys here,
+/// every other key the mask generator's ([`GeneratorParams`]), each written once.
+#[derive(Clone, Debug, Default, PartialEq, Deserialize)]
+#[serde(try_from = "toml::Table")]
 pub struct SamConfig {
     /// The safetensors weights (the official checkpoint's tensor names), relative to the config
     /// file's folder. Required.
     pub weights: Option<PathBuf>,
     /// Which checkpoint the weights are. Default `"mobile-sam"`.
     pub variant: SamVariant,
+    /// Where the network runs: `"cpu"` (default), `"cuda"` or `"cuda:N"` (feature `cuda`). The
+    /// mask post-processing stays on the CPU; each batch's masks cross once.
+    pub device: crate::ComputeDevice,
+    /// The mask generator's parameters: the section's other keys.
+    pub generator: GeneratorParams,
+}
+
+/// The keys of [`SamConfig`] that describe the model.
+#[derive(Default, Deserialize)]
+#[serde(deny_unknown_fields, default)]
+struct ModelKeys {
+    weights: Option<PathBuf>,
+    variant: SamVariant,
+    device: crate::ComputeDevice,
+}
+
+impl TryFrom<toml::Table> for SamConfig {
+    type Error = toml::de::Error;
+
+    /// Splits the section: the model's keys, then the generator's, which refuse any other key
+    /// (`deny_unknown_fields`), so a typo is still an error naming it.
+    fn try_from(mut section: toml::Table) -> Result<Self, Self::Error> {
+        let mut model = toml::Table::new();
+        for key in ["weights", "variant", "device"] {
+            if let Some(value) = section.remove(key) {
+                model.insert(key.to_owned(), value);
+            }
+        }
+        let ModelKeys {
+            weights,
+            variant,
+            device,
+        } = model.try_into()?;
+        Ok(Self {
+            weights,
+            variant,
+            device,
+            generator: section.try_into()?,
+        })
+    }
+}
+
+/// The mask generator's parameters (the `[proposer]` keys of `sam` besides the model's), with
+/// the reference's defaults; [`GeneratorParams::check`] validates them.
+#[derive(Clone, Debug, PartialEq, Deserialize)]
+#[serde(deny_unknown_fields, default)]
+pub struct GeneratorParams {
     /// Grid points per image side (the first pass decodes `points_per_side²` prompts).
     pub points_per_side: usize,
     /// Prompts decoded in one batch (memory: ~10 MB per prompt).
@@ -173,16 +222,11 @@ pub struct SamConfig {
     pub refine_points: usize,
     /// Seed of the refinement's sampling.
     pub seed: u64,
-    /// Where the network runs: `"cpu"` (default), `"cuda"` or `"cuda:N"` (feature `cuda`). The
-    /// mask post-processing stays on the CPU; each batch's masks cross once.
-    pub device: crate::ComputeDevice,
 }
 
-impl Default for SamConfig {
+impl Default for GeneratorParams {
     fn default() -> Self {
         Self {
-            weights: None,
-            variant: SamVariant::MobileSam,
             points_per_side: 32,
             points_per_batch: 32,
             pred_iou_thresh: 0.88,
@@ -193,42 +237,16 @@ impl Default for SamConfig {
             refine: true,
             refine_points: 32,
             seed: 0,
-            device: crate::ComputeDevice::Cpu,
         }
     }
 }
 
-/// The mask generator's parameters, checked (everything of [`SamConfig`] but the model).
-#[derive(Clone, Debug, PartialEq)]
-pub struct GeneratorParams {
-    /// See [`SamConfig::points_per_side`].
-    pub points_per_side: usize,
-    /// See [`SamConfig::points_per_batch`].
-    pub points_per_batch: usize,
-    /// See [`SamConfig::pred_iou_thresh`].
-    pub pred_iou_thresh: f32,
-    /// See [`SamConfig::stability_score_thresh`].
-    pub stability_score_thresh: f32,
-    /// See [`SamConfig::stability_score_offset`].
-    pub stability_score_offset: f32,
-    /// See [`SamConfig::box_nms_thresh`].
-    pub box_nms_thresh: f32,
-    /// See [`SamConfig::min_mask_region_area`].
-    pub min_mask_region_area: usize,
-    /// See [`SamConfig::refine`].
-    pub refine: bool,
-    /// See [`SamConfig::refine_points`].
-    pub refine_points: usize,
-    /// See [`SamConfig::seed`].
-    pub seed: u64,
-}
-
-impl SamConfig {
-    /// The generator parameters, validated.
+impl GeneratorParams {
+    /// Checks every value's range.
     ///
     /// # Errors
     /// [`BackendError::InvalidParams`] for values out of range.
-    pub fn params(&self) -> Result<GeneratorParams, BackendError> {
+    pub fn check(&self) -> Result<(), BackendError> {
         let bad = |m: String| Err(BackendError::InvalidParams(m));
         if !(1..=256).contains(&self.points_per_side) {
             return bad(format!(
@@ -266,37 +284,7 @@ impl SamConfig {
                 self.refine_points
             ));
         }
-        Ok(GeneratorParams {
-            points_per_side: self.points_per_side,
-            points_per_batch: self.points_per_batch,
-            pred_iou_thresh: self.pred_iou_thresh,
-            stability_score_thresh: self.stability_score_thresh,
-            stability_score_offset: self.stability_score_offset,
-            box_nms_thresh: self.box_nms_thresh,
-            min_mask_region_area: self.min_mask_region_area,
-            refine: self.refine,
-            refine_points: self.refine_points,
-            seed: self.seed,
-        })
-    }
-}
-
-impl Default for GeneratorParams {
-    fn default() -> Self {
-        // The defaults are valid by construction.
-        let c = SamConfig::default();
-        Self {
-            points_per_side: c.points_per_side,
-            points_per_batch: c.points_per_batch,
-            pred_iou_thresh: c.pred_iou_thresh,
-            stability_score_thresh: c.stability_score_thresh,
-            stability_score_offset: c.stability_score_offset,
-            box_nms_thresh: c.box_nms_thresh,
-            min_mask_region_area: c.min_mask_region_area,
-            refine: c.refine,
-            refine_points: c.refine_points,
-            seed: c.seed,
-        }
+        Ok(())
     }
 }
 
@@ -411,7 +399,8 @@ impl SamProposer {
     /// [`BackendError::InvalidModelFile`] for weights that do not fit the variant,
     /// [`BackendError::DeviceUnavailable`] for a `device` that cannot run it here.
     pub fn from_config(config: SamConfig, ctx: &BuildContext) -> Result<Self, BackendError> {
-        let params = config.params()?;
+        config.generator.check()?;
+        let params = config.generator.clone();
         let variant = config.variant;
         let Some(weights) = config.weights.as_deref() else {
             return Err(BackendError::InvalidParams(format!(
