@@ -77,6 +77,8 @@ struct ImageTopic {
     configured: bool,
     image_type: Option<ImageType>,
     stamps: Vec<Stamped>,
+    /// An image_transport name's first malformed message: an error only if the topic is read.
+    malformed: Option<DatasetError>,
 }
 
 /// The topics an image may be on when the configured `topic` is not in a bag: image_transport
@@ -97,6 +99,7 @@ fn image_topics(role: &'static str, topic: &str) -> Vec<ImageTopic> {
             configured: suffix.is_empty(),
             image_type: None,
             stamps: Vec::new(),
+            malformed: None,
         })
         .collect()
 }
@@ -462,7 +465,16 @@ fn scan(bag: &mut Bag, settings: &Rosbag2Config, use_camera_info: bool) -> Resul
                 }
             };
             image.image_type = Some(image_type);
-            let header = header_of(data).map_err(|e| message_error(e.to_string()))?;
+            let header = match header_of(data) {
+                Ok(header) => header,
+                Err(e) if image.configured => return Err(message_error(e.to_string())),
+                // A bag whose configured topic is there does not fail on an alternative it
+                // does not read.
+                Err(e) => {
+                    image.malformed.get_or_insert(message_error(e.to_string()));
+                    continue;
+                }
+            };
             image.stamps.push(Stamped {
                 time: header.seconds(),
                 key,
@@ -575,6 +587,9 @@ fn scan(bag: &mut Bag, settings: &Rosbag2Config, use_camera_info: bool) -> Resul
                 },
                 chosen.name
             ));
+        }
+        if let Some(malformed) = chosen.malformed.take() {
+            return Err(malformed);
         }
         let stamps = std::mem::take(&mut chosen.stamps);
         let (list, topic, slot) = if role == "colour" {
