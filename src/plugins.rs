@@ -18,6 +18,7 @@
 //! declare the feature with `feature_hint!` in the plugin crate.
 
 use vlem_backends as _;
+use vlem_datasets as _;
 use vlem_maps as _;
 use vlem_plugin_colour_names as _;
 use vlem_plugin_python as _;

@@ -187,6 +187,34 @@ fn a_missing_or_malformed_config_file_is_named() {
     );
 }
 
+/// `[dataset]` belongs to its reader: a key no reader takes is refused naming the reader, the key
+/// and its line; an unknown reader lists the registered ones.
+#[cfg(all(feature = "colour-names", feature = "point-cloud"))]
+#[test]
+fn dataset_keys_and_kinds_are_checked_by_the_registered_reader() {
+    let tmp = tempfile::tempdir().unwrap();
+    let dataset = living_room_copy(tmp.path(), 1);
+    let err = run_fails(
+        tmp.path(),
+        &dataset,
+        "[dataset]\nstride = 1\ntrajectroy = \"x.log\"\n",
+    );
+    assert!(
+        err.starts_with(
+            "error: [dataset] kind = \"icl\": unknown field `trajectroy`, expected `intrinsics` \
+             or `trajectory`"
+        ),
+        "{err}"
+    );
+    assert!(err.trim_end().ends_with("test.toml, line 3)"), "{err}");
+
+    let err = run_fails(tmp.path(), &dataset, "[dataset]\nkind = \"icl-nuim\"\n");
+    assert!(err.contains("icl-nuim"), "{err}");
+    for known in ["icl", "replica", "scannet", "synthetic", "tum"] {
+        assert!(err.contains(known), "{err}");
+    }
+}
+
 #[cfg(all(feature = "colour-names", feature = "point-cloud"))]
 #[test]
 fn an_empty_dataset_folder_is_refused_by_the_command() {

@@ -36,6 +36,13 @@ fn plugins_lists_every_linked_implementation() {
     let out = ok(&["plugins"]);
     // The names listed are those of the implementations this build was compiled with.
     for name in [
+        "icl",
+        "tum",
+        "scannet",
+        "replica",
+        "synthetic",
+        #[cfg(feature = "rosbag2")]
+        "rosbag2",
         "ground-truth",
         #[cfg(feature = "colour-names")]
         "colour-names",
@@ -53,6 +60,17 @@ fn plugins_lists_every_linked_implementation() {
             out.contains(&format!("  {name} ")),
             "`{name}` missing from:\n{out}"
         );
+    }
+    assert!(
+        out.starts_with("datasets ([dataset] kind = ...):\n"),
+        "{out}"
+    );
+    // Optional implementations carry their feature, and those this build lacks are named.
+    if cfg!(feature = "point-cloud") {
+        assert!(out.contains("[feature `point-cloud`]"), "{out}");
+    }
+    if !cfg!(feature = "rosbag2") {
+        assert!(out.contains("rosbag2 (feature `rosbag2`)"), "{out}");
     }
 }
 

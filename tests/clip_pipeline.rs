@@ -35,10 +35,10 @@ fn configs() -> PathBuf {
 /// The shipped config, shrunk to `frames` frames of 160x120 (the region settings scaled along).
 fn config(frames: usize) -> (Config, BuildContext) {
     let mut config = Config::from_file(&configs().join("synthetic-clip.toml")).unwrap();
-    let synthetic = config.dataset.synthetic.as_mut().unwrap();
-    synthetic.frames = frames;
-    synthetic.width = 160;
-    synthetic.height = 120;
+    let synthetic = config.dataset.params["synthetic"].as_table_mut().unwrap();
+    synthetic.insert("frames".into(), (frames as i64).into());
+    synthetic.insert("width".into(), 160.into());
+    synthetic.insert("height".into(), 120.into());
     let proposer = config.proposer.as_mut().unwrap();
     proposer.params.insert("min_size".into(), 50.into());
     proposer.params.insert("max_regions".into(), 8.into());

@@ -340,7 +340,7 @@ fn a_labelled_folder_on_disk_gives_the_same_ground_truth_as_the_generated_scene(
     let map = out.join("map.vlem");
 
     let scene_dir = tmp.path().join("scene");
-    let scene = vlem_datasets::SyntheticScene::new(&vlem_core::config::SyntheticConfig {
+    let scene = vlem_datasets::SyntheticScene::new(&vlem_datasets::SyntheticConfig {
         seed: 2,
         frames: 24,
         width: 160,

@@ -34,10 +34,10 @@ fn configs() -> PathBuf {
 /// The shipped config `name`, shrunk to `frames` frames of 160x120 (the short side along).
 fn config(name: &str, frames: usize) -> (Config, BuildContext) {
     let mut config = Config::from_file(&configs().join(name)).unwrap();
-    let synthetic = config.dataset.synthetic.as_mut().unwrap();
-    synthetic.frames = frames;
-    synthetic.width = 160;
-    synthetic.height = 120;
+    let synthetic = config.dataset.params["synthetic"].as_table_mut().unwrap();
+    synthetic.insert("frames".into(), (frames as i64).into());
+    synthetic.insert("width".into(), 160.into());
+    synthetic.insert("height".into(), 120.into());
     let encoder = config.encoder.as_mut().unwrap();
     encoder.params.insert("short_side".into(), 112.into());
     let ctx = BuildContext {

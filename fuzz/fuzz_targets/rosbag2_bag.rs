@@ -7,8 +7,7 @@ use std::path::PathBuf;
 
 use libfuzzer_sys::fuzz_target;
 use vlem_core::FrameSource;
-use vlem_core::config::{DatasetConfig, DatasetKind, Rosbag2Config};
-use vlem_datasets::Rosbag2Reader;
+use vlem_datasets::{Rosbag2Config, Rosbag2Reader};
 
 /// One file per fuzzing process, rewritten for every input (the reader opens bags by path).
 fn scratch() -> PathBuf {
@@ -20,16 +19,15 @@ fuzz_target!(|data: &[u8]| {
     if std::fs::write(&path, data).is_err() {
         return;
     }
-    let config = DatasetConfig {
-        kind: DatasetKind::Rosbag2,
-        rosbag2: Some(Rosbag2Config {
-            colour_topic: "/raw/rgb8".into(),
-            depth_topic: "/raw/depth_16uc1".into(),
-            camera_info_topic: "/raw/camera_info".into(),
-            pose_topic: Some("/raw/pose".into()),
-            ..Rosbag2Config::default()
-        }),
-        ..DatasetConfig::default()
+    let Ok(config) = (Rosbag2Config {
+        colour_topic: "/raw/rgb8".into(),
+        depth_topic: "/raw/depth_16uc1".into(),
+        camera_info_topic: "/raw/camera_info".into(),
+        pose_topic: Some("/raw/pose".into()),
+        ..Rosbag2Config::default()
+    })
+    .dataset_config() else {
+        return;
     };
     if let Ok(mut reader) = Rosbag2Reader::open(&path, &config) {
         for i in 0..reader.len().min(4) {

@@ -42,7 +42,7 @@ pub fn execute(args: &Ros2Args) -> Result<()> {
     let segmenter = Registry::global()?
         .build_segmenter(&config.query.segmenter, &ctx)
         .map_err(located)?;
-    let settings = config.ros2.clone().unwrap_or_default();
+    let settings = vlem_ros2::Ros2Config::from_table(config.ros2.as_ref()).map_err(located)?;
     let stop = Arc::new(AtomicBool::new(false));
     {
         let stop = stop.clone();

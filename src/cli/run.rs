@@ -167,7 +167,7 @@ fn run(mut config: Config, ctx: BuildContext, out: &Path, options: &RunOptions<'
         vlem_query::answer::embed_texts(encoder, segmenter.as_ref(), &config.query.texts)
             .context("[query] texts are answered after the run")?;
     }
-    let mut source = vlem_datasets::open(&config.dataset, &dataset_dir)?;
+    let mut source = vlem_datasets::open(&config.dataset, &dataset_dir).map_err(located)?;
     // Before mapping, so an unwritable output folder, recording or port fails now rather than
     // after a long run; a start that fails leaves no empty output folder behind.
     let created = !out.exists();

@@ -20,7 +20,6 @@ use std::time::Instant;
 
 use anyhow::{Context, Result, bail};
 use indicatif::{ProgressBar, ProgressStyle};
-use vlem_core::config::{DatasetKind, SyntheticConfig};
 use vlem_core::pipeline::{Pipeline, Progress, RunReport};
 use vlem_core::{Config, EmbeddingMap, Frame, FrameSource, Intrinsics};
 
@@ -190,27 +189,48 @@ pub fn execute(args: &SoakArgs) -> Result<()> {
     }
     let path = &args.config;
     let (mut config, ctx) = vlem_core::load_config(path)?;
-    if config.dataset.kind != DatasetKind::Synthetic {
+    if config.dataset.kind != vlem_datasets::synthetic::SYNTHETIC {
         bail!(
             "{}: vlem soak maps the synthetic scene, which has any number of frames: set \
              [dataset] kind = \"synthetic\"",
             path.display()
         );
     }
-    let mut synthetic = config.dataset.synthetic.clone();
-    let frames = args
-        .frames
-        .or(synthetic.as_ref().map(|s| s.frames))
-        .unwrap_or(DEFAULT_FRAMES);
-    synthetic
-        .get_or_insert_with(SyntheticConfig::default)
-        .frames = frames;
-    config.dataset.synthetic = synthetic;
+    // `[dataset.synthetic]` belongs to the reader, which checks it; only `frames` is set here.
+    let section = config
+        .dataset
+        .params
+        .entry("synthetic")
+        .or_insert_with(|| toml::Value::Table(toml::Table::new()));
+    let Some(section) = section.as_table_mut() else {
+        bail!(
+            "{}: [dataset] synthetic must be a table ([dataset.synthetic])",
+            path.display()
+        );
+    };
+    let frames = match (args.frames, section.get("frames")) {
+        (Some(frames), _) => frames,
+        (None, Some(value)) => value
+            .as_integer()
+            .and_then(|n| usize::try_from(n).ok())
+            .with_context(|| {
+                format!(
+                    "{}: [dataset.synthetic] frames must be a whole number of frames, got {value}",
+                    path.display()
+                )
+            })?,
+        (None, None) => DEFAULT_FRAMES,
+    };
+    section.insert(
+        "frames".to_owned(),
+        toml::Value::Integer(i64::try_from(frames).context("--frames is too large")?),
+    );
 
     let mut pipeline = Pipeline::from_config(&config, &ctx)
         .map_err(|e| vlem_core::config::with_config_line(e, path))?;
     let (budget_key, budget) = map_budget(&config, pipeline.map().as_deref(), path)?;
-    let mut source = vlem_datasets::open(&config.dataset, &ctx.config_dir)?;
+    let mut source = vlem_datasets::open(&config.dataset, &ctx.config_dir)
+        .map_err(|e| vlem_core::config::with_config_line(e, path))?;
     std::fs::create_dir_all(&args.out)
         .with_context(|| format!("cannot create {}", args.out.display()))?;
     let total = source.len();

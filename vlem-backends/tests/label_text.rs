@@ -133,7 +133,7 @@ fn something_to_sit_on_is_closest_to_chair_and_sofa() {
 #[test]
 fn a_synthetic_frame_embeds_each_class_as_its_name() {
     let e = encoder();
-    let scene = vlem_datasets::SyntheticScene::new(&vlem_core::config::SyntheticConfig {
+    let scene = vlem_datasets::SyntheticScene::new(&vlem_datasets::SyntheticConfig {
         frames: 2,
         ..Default::default()
     })
@@ -332,7 +332,7 @@ fn timings() {
     let per_long = t.elapsed().as_secs_f64() * 1e3 / 5.0;
     println!("text embedding: {per_long:.1} ms per text of 256 tokens (truncated)");
 
-    let scene = vlem_datasets::SyntheticScene::new(&vlem_core::config::SyntheticConfig {
+    let scene = vlem_datasets::SyntheticScene::new(&vlem_datasets::SyntheticConfig {
         frames: 2,
         ..Default::default()
     })

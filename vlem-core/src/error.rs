@@ -114,11 +114,14 @@ pub enum CoreError {
         second: &'static str,
     },
     /// Parameters of a stage that its implementation does not accept.
-    #[error("[{section}] kind = \"{name}\": {message}")]
+    #[error(
+        "[{section}]{}: {message}",
+        if name.is_empty() { String::new() } else { format!(" kind = \"{name}\"") }
+    )]
     InvalidParams {
         /// The config section (e.g. "encoder").
         section: String,
-        /// The implementation name.
+        /// The implementation name; empty for a section that names none (`[ros2]`).
         name: String,
         /// What the parser said, naming the offending key.
         message: String,

@@ -23,7 +23,8 @@ pub use embeddings::{EmbeddingLayout, NO_SEGMENT, PixelEmbeddings};
 pub use error::{CoreError, Result, message_chain};
 pub use mapfile::{MapMetadata, MapSnapshot, read_map_file, write_map_file};
 pub use registry::{
-    BuildContext, BuildFn, Builder, FeatureHint, Registration, Registry, load_config, parse_params,
+    BuildContext, BuildFn, Builder, DatasetProbe, DatasetReader, FeatureHint, OpenDatasetFn,
+    Registration, Registry, load_config, parse_params,
 };
 pub use stage::StageKind;
 pub use traits::embedding_map::{EmbeddingMap, IntegrationStats, MapBudget, Observation};

@@ -5,21 +5,26 @@
 //! once into sorted maps, refusing duplicate names. Lookups of an unknown name list the known names
 //! and, when a [`FeatureHint`] says so, the cargo feature that would compile the missing one in.
 //!
+//! Datasets are a stage like the others: each reader registers with [`register_dataset!`] a
+//! [`DatasetReader`] (how to open it, and the probe that recognises its folders for
+//! `kind = "auto"`); `vlem_datasets::open` picks one.
+//!
 //! A plugin crate that is a dependency but never referenced is not linked, and its registrations
 //! vanish silently: binaries reference every plugin crate they depend on (see `src/plugins.rs` of the
 //! `vlem` binary), and a test there checks the expected names.
 
 use std::collections::BTreeMap;
-use std::path::PathBuf;
+use std::path::{Path, PathBuf};
 use std::sync::OnceLock;
 
 use serde::de::DeserializeOwned;
 
-use crate::config::{Config, StageConfig, config_folder};
+use crate::config::{Config, DatasetConfig, StageConfig, config_folder};
 use crate::error::{CoreError, Result};
 use crate::stage::StageKind;
 use crate::traits::embedding_map::EmbeddingMap;
 use crate::traits::encoder::Encoder;
+use crate::traits::frame_source::FrameSource;
 use crate::traits::region_proposer::RegionProposer;
 use crate::traits::segmenter::Segmenter;
 use crate::traits::tracker::Tracker;
@@ -75,9 +80,92 @@ pub fn load_config(path: &std::path::Path) -> Result<(Config, BuildContext)> {
 /// Signature of a build function: the stage's parameters (its config section without `kind`).
 pub type BuildFn<T> = fn(&toml::Table, &BuildContext) -> Result<Box<T>>;
 
+/// Opens a dataset: the `[dataset]` settings, and the path they resolve to (a folder, or for
+/// readers that take one a single file; readers that need none, such as a generated scene, ignore
+/// it).
+pub type OpenDatasetFn = fn(&DatasetConfig, &Path) -> Result<Box<dyn FrameSource>>;
+
+/// How `kind = "auto"` recognises a reader's datasets.
+#[derive(Clone, Copy, Debug)]
+pub struct DatasetProbe {
+    /// Whether `path` holds this reader's layout; cheap (file names, not contents).
+    pub probe: fn(&Path) -> bool,
+    /// Probes run in ascending order, the first match wins: a more specific layout comes before a
+    /// looser one that would also match it.
+    pub order: u16,
+    /// What the probe looks for, for the error that lists them when none matches, e.g.
+    /// `"rgb.txt and depth.txt (TUM RGB-D)"`.
+    pub looks_for: &'static str,
+}
+
+/// A registered dataset reader: how it is opened and found.
+#[derive(Clone, Copy, Debug)]
+pub struct DatasetReader {
+    /// Opens it.
+    pub open: OpenDatasetFn,
+    /// How `kind = "auto"` recognises it; `None`: only by name.
+    pub detect: Option<DatasetProbe>,
+    /// Whether it reads a path (false for a scene generated from its settings alone).
+    pub needs_path: bool,
+    /// Parses the reader's own `[dataset]` keys without opening anything, so that a typo is found
+    /// before a long job starts (a study's cells); `None`: they are checked when it opens.
+    pub check_settings: Option<fn(&DatasetConfig) -> Result<()>>,
+    /// The trajectory file of one of its folders, found as the reader finds it (for
+    /// `vlem eval trajectory --reference DIR`); `None` for layouts without one such file.
+    pub trajectory_file: Option<fn(&Path) -> Result<PathBuf>>,
+}
+
+impl DatasetReader {
+    /// A reader of a path, opened by `open`, found only by name.
+    pub const fn new(open: OpenDatasetFn) -> Self {
+        Self {
+            open,
+            detect: None,
+            needs_path: true,
+            check_settings: None,
+            trajectory_file: None,
+        }
+    }
+
+    /// With the function that checks its own `[dataset]` keys.
+    pub const fn with_settings_check(mut self, check: fn(&DatasetConfig) -> Result<()>) -> Self {
+        self.check_settings = Some(check);
+        self
+    }
+
+    /// Found by `kind = "auto"` where `probe` says so, in `order` (see [`DatasetProbe`]).
+    pub const fn detected_by(
+        mut self,
+        order: u16,
+        looks_for: &'static str,
+        probe: fn(&Path) -> bool,
+    ) -> Self {
+        self.detect = Some(DatasetProbe {
+            probe,
+            order,
+            looks_for,
+        });
+        self
+    }
+
+    /// A reader that reads no path.
+    pub const fn without_path(mut self) -> Self {
+        self.needs_path = false;
+        self
+    }
+
+    /// With the function that finds a folder's trajectory file.
+    pub const fn with_trajectory_file(mut self, find: fn(&Path) -> Result<PathBuf>) -> Self {
+        self.trajectory_file = Some(find);
+        self
+    }
+}
+
 /// The constructor of one registered implementation.
 #[derive(Clone, Copy)]
 pub enum Builder {
+    /// Opens a dataset ([`FrameSource`]).
+    Dataset(DatasetReader),
     /// Builds a [`Tracker`].
     Tracker(BuildFn<dyn Tracker>),
     /// Builds a [`RegionProposer`].
@@ -94,6 +182,7 @@ impl Builder {
     /// The stage this builder makes.
     pub fn kind(&self) -> StageKind {
         match self {
+            Builder::Dataset(_) => StageKind::Dataset,
             Builder::Tracker(_) => StageKind::Tracker,
             Builder::Proposer(_) => StageKind::Proposer,
             Builder::Encoder(_) => StageKind::Encoder,
@@ -184,6 +273,27 @@ impl Registry {
         self.entries.values().copied()
     }
 
+    /// The cargo feature that compiles in `name` of `kind`, where one is declared
+    /// ([`feature_hint!`]); `None` for what every build has.
+    pub fn feature_of(&self, kind: StageKind, name: &str) -> Option<&'static str> {
+        inventory::iter::<FeatureHint>
+            .into_iter()
+            .find(|h| h.kind == kind && h.name == name)
+            .map(|h| h.feature)
+    }
+
+    /// The implementations of `kind` this build lacks, with the cargo feature of each, sorted.
+    pub fn not_built(&self, kind: StageKind) -> Vec<(&'static str, &'static str)> {
+        let mut missing: Vec<_> = inventory::iter::<FeatureHint>
+            .into_iter()
+            .filter(|h| h.kind == kind && !self.entries.contains_key(&(kind, h.name)))
+            .map(|h| (h.name, h.feature))
+            .collect();
+        missing.sort_unstable();
+        missing.dedup();
+        missing
+    }
+
     /// The registration for `name`, or the unknown-name error.
     ///
     /// # Errors
@@ -198,11 +308,35 @@ impl Registry {
                 kind,
                 name: name.to_owned(),
                 known: self.names(kind),
-                feature: inventory::iter::<FeatureHint>
-                    .into_iter()
-                    .find(|h| h.kind == kind && h.name == name)
-                    .map(|h| h.feature.to_owned()),
+                feature: self.feature_of(kind, name).map(str::to_owned),
             })
+    }
+
+    /// The dataset reader registered as `name`.
+    ///
+    /// # Errors
+    /// [`CoreError::UnknownImplementation`], as [`Registry::get`].
+    pub fn dataset(&self, name: &str) -> Result<DatasetReader> {
+        match self.get(StageKind::Dataset, name)?.builder {
+            Builder::Dataset(reader) => Ok(reader),
+            _ => Err(mismatched(StageKind::Dataset, name)),
+        }
+    }
+
+    /// The dataset readers `kind = "auto"` can detect, in the order their probes run.
+    pub fn dataset_probes(&self) -> Vec<(&'static str, DatasetProbe)> {
+        let mut probes: Vec<_> = self
+            .iter()
+            .filter_map(|r| match r.builder {
+                Builder::Dataset(DatasetReader {
+                    detect: Some(probe),
+                    ..
+                }) => Some((r.name, probe)),
+                _ => None,
+            })
+            .collect();
+        probes.sort_by_key(|(name, probe)| (probe.order, *name));
+        probes
     }
 
     /// Builds the tracker a config section names.
@@ -311,6 +445,23 @@ pub fn parse_params<T: DeserializeOwned>(
         name: name.to_owned(),
         message: e.to_string().trim().to_owned(),
     })
+}
+
+/// Registers a dataset reader:
+/// `register_dataset!("name", "one-line description", DatasetReader::new(open_fn)…);`
+/// with a [`DatasetReader`] (its probe for `kind = "auto"`, whether it reads a path, its
+/// trajectory file).
+#[macro_export]
+macro_rules! register_dataset {
+    ($name:expr, $description:expr, $reader:expr) => {
+        $crate::__private::inventory::submit! {
+            $crate::Registration {
+                name: $name,
+                description: $description,
+                builder: $crate::Builder::Dataset($reader),
+            }
+        }
+    };
 }
 
 /// Registers a [`Tracker`]: `register_tracker!("name", "one-line description", build_fn);`

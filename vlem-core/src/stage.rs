@@ -8,6 +8,8 @@ use std::fmt;
 /// The pipeline stages that have pluggable implementations.
 #[derive(Clone, Copy, Debug, PartialEq, Eq, PartialOrd, Ord, Hash)]
 pub enum StageKind {
+    /// [`FrameSource`](crate::FrameSource) readers, config section `[dataset]`.
+    Dataset,
     /// [`Tracker`](crate::Tracker), config section `[tracker]`.
     Tracker,
     /// [`RegionProposer`](crate::RegionProposer), config section `[proposer]`.
@@ -22,7 +24,8 @@ pub enum StageKind {
 
 impl StageKind {
     /// Every stage, in pipeline order.
-    pub const ALL: [StageKind; 5] = [
+    pub const ALL: [StageKind; 6] = [
+        StageKind::Dataset,
         StageKind::Tracker,
         StageKind::Proposer,
         StageKind::Encoder,
@@ -33,6 +36,7 @@ impl StageKind {
     /// The config section that configures this stage.
     pub fn section(self) -> &'static str {
         match self {
+            StageKind::Dataset => "dataset",
             StageKind::Tracker => "tracker",
             StageKind::Proposer => "proposer",
             StageKind::Encoder => "encoder",
@@ -45,6 +49,7 @@ impl StageKind {
 impl fmt::Display for StageKind {
     fn fmt(&self, f: &mut fmt::Formatter<'_>) -> fmt::Result {
         f.write_str(match self {
+            StageKind::Dataset => "dataset",
             StageKind::Tracker => "tracker",
             StageKind::Proposer => "region proposer",
             StageKind::Encoder => "encoder",

@@ -214,6 +214,16 @@ pub enum DatasetError {
         /// The setting and what is wrong with it.
         message: String,
     },
+    /// A reader-owned `[dataset]` setting the reader does not accept (an unknown key, a value of
+    /// the wrong type); the pipeline sees it as [`CoreError::InvalidParams`], which front-ends
+    /// locate on its line of the config.
+    #[error("[dataset] kind = \"{reader}\": {message}")]
+    InvalidSettings {
+        /// The reader.
+        reader: String,
+        /// What the parser said, naming the key.
+        message: String,
+    },
     /// A frame index past the end of the sequence.
     #[error("{}: frame {index} requested but the sequence has {len} frames", path.display())]
     FrameOutOfRange {
@@ -303,8 +313,15 @@ impl DatasetError {
 
 impl From<DatasetError> for CoreError {
     fn from(e: DatasetError) -> Self {
-        CoreError::Dataset {
-            source: Box::new(e),
+        match e {
+            DatasetError::InvalidSettings { reader, message } => CoreError::InvalidParams {
+                section: vlem_core::StageKind::Dataset.section().to_owned(),
+                name: reader,
+                message,
+            },
+            e => CoreError::Dataset {
+                source: Box::new(e),
+            },
         }
     }
 }

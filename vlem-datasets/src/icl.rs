@@ -17,14 +17,16 @@
 
 use std::path::{Path, PathBuf};
 
-use vlem_core::LabelNames;
+use serde::Deserialize;
 use vlem_core::config::DatasetConfig;
+use vlem_core::{DatasetReader, FrameSource, LabelNames};
 
 use crate::calibration::read_open3d_intrinsics;
 use crate::error::{DatasetError, Result};
 use crate::sequence::{
-    Camera, ColourFit, Entry, MissingFrames, Selection, Sequence, attach_trajectory, depth_scale,
-    frame_number, list_files, reader_via_sequence, require_file,
+    Camera, ColourFit, Entry, MissingFrames, Selection, Sequence, attach_trajectory,
+    check_settings, depth_scale, frame_number, list_files, reader_settings, reader_via_sequence,
+    require_file,
 };
 use crate::text::{match_pairs_from_str, read_text};
 use crate::trajectory::read_numbered_log;
@@ -39,6 +41,54 @@ const COLOUR_DIRS: [&str; 2] = ["color", "image"];
 const INTRINSICS_FILES: [&str; 2] = ["intrinsics.json", "camera_intrinsic.json"];
 
 const COLOUR_EXTENSIONS: [&str; 3] = ["jpg", "jpeg", "png"];
+
+/// The registered name: `[dataset] kind = "icl"`.
+pub const ICL: &str = "icl";
+
+vlem_core::register_dataset!(
+    ICL,
+    "ICL-NUIM / Redwood / Open3D folders: color/ (or image/), depth/, intrinsics JSON, .log trajectory",
+    DatasetReader::new(open_boxed)
+        .detected_by(
+            40,
+            "color/ or image/ beside depth/, or rgbd.match (ICL-NUIM/Redwood)",
+            is_icl_folder
+        )
+        .with_trajectory_file(trajectory_file)
+        .with_settings_check(|config| check_settings::<IclSettings>(ICL, config))
+);
+
+fn open_boxed(config: &DatasetConfig, dir: &Path) -> vlem_core::Result<Box<dyn FrameSource>> {
+    Ok(Box::new(IclReader::open(dir, config)?))
+}
+
+/// Whether `dir` looks like an ICL-NUIM/Redwood folder.
+fn is_icl_folder(dir: &Path) -> bool {
+    dir.join("rgbd.match").is_file()
+        || (dir.join("depth").is_dir() && COLOUR_DIRS.iter().any(|c| dir.join(c).is_dir()))
+}
+
+/// `[dataset]` keys of this reader, besides the shared ones.
+#[derive(Debug, Default, Deserialize)]
+#[serde(deny_unknown_fields)]
+struct IclSettings {
+    /// Intrinsics file (Open3D JSON) for folders that do not name it as this reader expects,
+    /// relative to the dataset folder.
+    #[serde(default)]
+    intrinsics: Option<PathBuf>,
+    /// Trajectory file (Redwood `.log`) likewise.
+    #[serde(default)]
+    trajectory: Option<PathBuf>,
+}
+
+/// A folder's trajectory: `trajectory.log`, else its only `.log` file.
+fn trajectory_file(dir: &Path) -> vlem_core::Result<PathBuf> {
+    let found = find_trajectory(dir, &IclSettings::default())?;
+    Ok(found.ok_or_else(|| DatasetError::MissingFile {
+        path: dir.join("trajectory.log"),
+        hint: "an ICL-NUIM/Redwood folder's trajectory: trajectory.log or one .log file".to_owned(),
+    })?)
+}
 
 /// Reader of an ICL-NUIM / Redwood / Open3D folder (see the module docs for the layout).
 #[derive(Debug)]
@@ -57,17 +107,18 @@ impl IclReader {
     /// message lists the names tried), [`DatasetError::CountMismatch`] when the folders cannot be
     /// paired, trajectory errors of [`crate::trajectory::read_log`], [`DatasetError::TooFewPoses`],
     /// [`DatasetError::NoPoseForFrame`] when frames are missing and one has no pose by number,
-    /// [`DatasetError::Ambiguous`] for several `.log` files, [`DatasetError::BadConfig`] and
-    /// [`DatasetError::Empty`].
+    /// [`DatasetError::Ambiguous`] for several `.log` files, [`DatasetError::BadConfig`],
+    /// [`DatasetError::InvalidSettings`] and [`DatasetError::Empty`].
     pub fn open(dir: &Path, config: &DatasetConfig) -> Result<Self> {
+        let settings: IclSettings = reader_settings(ICL, config)?;
         let selection = Selection::from_config(config, dir)?;
         let scale = depth_scale(config, ICL_DEPTH_SCALE, dir)?;
         let (entries, label_names) = attach_labels(dir, frame_files(dir)?)?;
         let missing = MissingFrames::of(&entries);
         let mut selected = selection.apply(entries);
-        let intrinsics_path = find_intrinsics(dir, config)?;
+        let intrinsics_path = find_intrinsics(dir, &settings)?;
         let intrinsics = read_open3d_intrinsics(&intrinsics_path)?;
-        let trajectory = find_trajectory(dir, config)?;
+        let trajectory = find_trajectory(dir, &settings)?;
         if let Some(trajectory) = &trajectory {
             let poses = read_numbered_log(trajectory)?;
             attach_trajectory(&mut selected, &missing, &poses, trajectory)?;
@@ -196,8 +247,8 @@ fn read_match_file(dir: &Path, path: &Path) -> Result<Vec<Entry>> {
 
 /// The intrinsics file: `[dataset] intrinsics`, else the first of [`INTRINSICS_FILES`]. There is
 /// deliberately no default camera: a wrong focal length silently bends the whole map.
-fn find_intrinsics(dir: &Path, config: &DatasetConfig) -> Result<PathBuf> {
-    if let Some(path) = &config.intrinsics {
+fn find_intrinsics(dir: &Path, settings: &IclSettings) -> Result<PathBuf> {
+    if let Some(path) = &settings.intrinsics {
         let path = dir.join(path);
         require_file(&path, || "set by [dataset] intrinsics".to_owned())?;
         return Ok(path);
@@ -219,8 +270,8 @@ fn find_intrinsics(dir: &Path, config: &DatasetConfig) -> Result<PathBuf> {
 
 /// The trajectory file, if any: `[dataset] trajectory`, else `trajectory.log`, else the folder's
 /// only `.log` file.
-pub(crate) fn find_trajectory(dir: &Path, config: &DatasetConfig) -> Result<Option<PathBuf>> {
-    if let Some(path) = &config.trajectory {
+fn find_trajectory(dir: &Path, settings: &IclSettings) -> Result<Option<PathBuf>> {
+    if let Some(path) = &settings.trajectory {
         let path = dir.join(path);
         require_file(&path, || "set by [dataset] trajectory".to_owned())?;
         return Ok(Some(path));

@@ -10,19 +10,21 @@
 //!   (`kind = "synthetic"`, settings in `[dataset.synthetic]`), which can also be written out in the
 //!   ICL layout with [`synthetic::write_to_disk`].
 //!
-//! [`open`] builds the reader for a `[dataset]` config, detecting the layout with [`detect_kind`]
-//! when `kind = "auto"`. Readers list the files when opened and decode a frame only when it is
-//! asked for. Every error ([`DatasetError`]) names the file involved; through [`FrameSource`] it
+//! Each reader registers itself (`vlem_core::register_dataset!`) with its name, its own
+//! `[dataset]` keys (parsed by the reader, unknown keys refused) and a probe for `kind = "auto"`;
+//! a reader in another crate does the same and is found alike. [`open`] builds the reader for a
+//! `[dataset]` config, detecting it with [`detect_kind`] when `kind = "auto"`. Readers list the
+//! files when opened and decode a frame only when it is asked for. Every error ([`DatasetError`]) names the file involved; through [`FrameSource`] it
 //! arrives as [`vlem_core::CoreError::Dataset`].
 //!
 //! Common `[dataset]` settings: frame `i` of a reader is frame `i * stride` of the recording, at
 //! most `max_frames` frames are used, `depth_scale` overrides the layout's default, and a frame's
 //! timestamp is the dataset's own or, where the layout has none, its index in the recording.
 
-use std::path::Path;
+use std::path::{Path, PathBuf};
 
-use vlem_core::FrameSource;
-use vlem_core::config::{DatasetConfig, DatasetKind};
+use vlem_core::config::{AUTO_DATASET, DatasetConfig};
+use vlem_core::{FrameSource, Registry};
 
 mod calibration;
 mod depth_check;
@@ -48,67 +50,52 @@ pub use images::{colour_from_bytes, colour_resized_from_bytes, depth_from_bytes}
 pub use replica::ReplicaReader;
 #[cfg(feature = "rosbag2")]
 pub use rosbag2::Rosbag2Reader;
+pub use rosbag2::{Rosbag2Config, looks_like_bag};
 pub use scannet::ScanNetReader;
-pub use synthetic::{SyntheticReader, SyntheticScene};
+pub use synthetic::{SyntheticConfig, SyntheticNoise, SyntheticReader, SyntheticScene};
 pub use text::{MatchPair, match_pairs_from_str};
 pub use tum::TumReader;
 
-/// What [`detect_kind`] looks for, in the order it checks.
-const LAYOUTS_LOOKED_FOR: &str = "looked for metadata.yaml or .mcap/.db3 files (ROS 2 bag), \
-    rgb.txt and depth.txt (TUM RGB-D), results/ (Replica, NICE-SLAM), intrinsic/ or pose/ beside depth/ (ScanNet export), and color/ or \
-    image/ beside depth/, or rgbd.match (ICL-NUIM/Redwood); set [dataset] kind to skip detection";
+/// The registry, for functions that return [`DatasetError`].
+fn registry(path: &Path) -> Result<&'static Registry> {
+    Registry::global().map_err(|source| DatasetError::Core {
+        path: path.to_path_buf(),
+        source,
+    })
+}
 
-/// Detects the layout of the dataset folder `dir` from the files it holds.
+/// Detects the registered reader of the dataset at `path` (a folder, or a bag's one file) from the
+/// files it holds: the first whose probe matches, in the readers' probe order.
 ///
 /// # Errors
-/// [`DatasetError::MissingFile`] when `dir` is not a folder, [`DatasetError::Empty`] when it holds
-/// nothing, and [`DatasetError::UnknownLayout`] (listing what was looked for and what was found)
-/// when it matches no layout.
-pub fn detect_kind(dir: &Path) -> Result<DatasetKind> {
-    if looks_like_bag(dir) {
-        return Ok(DatasetKind::Rosbag2);
+/// [`DatasetError::MissingFile`] when `path` is neither a folder nor a file a reader takes,
+/// [`DatasetError::Empty`] when the folder holds nothing, and [`DatasetError::UnknownLayout`]
+/// (listing what was looked for and what was found) when it matches no reader.
+pub fn detect_kind(path: &Path) -> Result<&'static str> {
+    let probes = registry(path)?.dataset_probes();
+    if let Some((name, _)) = probes.iter().find(|(_, p)| (p.probe)(path)) {
+        return Ok(name);
     }
-    if !dir.is_dir() {
+    // A build without the bag reader still names it, so that opening says which feature reads it.
+    if looks_like_bag(path) {
+        return Ok(rosbag2::ROSBAG2);
+    }
+    if !path.is_dir() {
         return Err(DatasetError::MissingFile {
-            path: dir.to_path_buf(),
+            path: path.to_path_buf(),
             hint: "the dataset folder does not exist".to_owned(),
         });
     }
-    let has_file = |name: &str| dir.join(name).is_file();
-    let has_dir = |name: &str| dir.join(name).is_dir();
-    let kind = if has_file("rgb.txt") && has_file("depth.txt") {
-        DatasetKind::Tum
-    } else if has_dir("results") {
-        DatasetKind::Replica
-    } else if has_dir("depth") && (has_dir("intrinsic") || has_dir("pose")) {
-        DatasetKind::Scannet
-    } else if has_file("rgbd.match") || (has_dir("depth") && (has_dir("color") || has_dir("image")))
-    {
-        DatasetKind::Icl
-    } else {
-        return Err(unknown_layout(dir));
-    };
-    Ok(kind)
-}
-
-/// Whether `path` looks like a ROS 2 bag: a `.mcap` or `.db3` file, or a folder with
-/// `metadata.yaml` or such a file.
-pub fn looks_like_bag(path: &Path) -> bool {
-    let is_storage = |p: &Path| p.extension().is_some_and(|e| e == "mcap" || e == "db3");
-    if path.is_file() {
-        return is_storage(path);
+    let mut looked_for: Vec<&str> = probes.iter().map(|(_, p)| p.looks_for).collect();
+    if !probes.iter().any(|(name, _)| *name == rosbag2::ROSBAG2) {
+        looked_for.insert(0, rosbag2::LOOKS_FOR);
     }
-    path.join("metadata.yaml").is_file()
-        || std::fs::read_dir(path)
-            .into_iter()
-            .flatten()
-            .flatten()
-            .any(|e| is_storage(&e.path()))
+    Err(unknown_layout(path, &looked_for))
 }
 
 /// [`DatasetError::Empty`] for an empty folder, else [`DatasetError::UnknownLayout`] naming what
 /// was looked for and what is there.
-fn unknown_layout(dir: &Path) -> DatasetError {
+fn unknown_layout(dir: &Path, looked_for: &[&str]) -> DatasetError {
     let mut found: Vec<String> = std::fs::read_dir(dir)
         .into_iter()
         .flatten()
@@ -133,23 +120,30 @@ fn unknown_layout(dir: &Path) -> DatasetError {
     }
     DatasetError::UnknownLayout {
         path: dir.to_path_buf(),
-        message: format!("{LAYOUTS_LOOKED_FOR}; found {listing}"),
+        message: format!(
+            "looked for {}; set [dataset] kind to skip detection; found {listing}",
+            looked_for.join(", ")
+        ),
     }
 }
 
 /// The dataset folder of a run: `dataset` when given (a command-line override), else
-/// `[dataset] path` resolved against the config's folder (`ctx`). A synthetic scene has no folder:
-/// it gets the config's folder, which [`open`] ignores.
+/// `[dataset] path` resolved against the config's folder (`ctx`). A reader that reads no path
+/// (the synthetic scene) gets the config's folder, which it ignores.
 ///
 /// # Errors
 /// [`DatasetError::NoFolder`] when neither is set, [`DatasetError::NoSuchFolder`] when the folder
-/// does not exist.
+/// does not exist (or is a file no reader takes).
 pub fn dataset_folder(
     config: &vlem_core::Config,
     ctx: &vlem_core::BuildContext,
     dataset: Option<&Path>,
-) -> Result<std::path::PathBuf> {
-    let synthetic = config.dataset.kind == DatasetKind::Synthetic;
+) -> Result<PathBuf> {
+    let registry = registry(&ctx.config_dir)?;
+    // An unknown kind is reported by `open`, with the known ones.
+    let needs_path = registry
+        .dataset(&config.dataset.kind)
+        .map_or(true, |reader| reader.needs_path);
     let (dir, hint) = match (dataset, &config.dataset.path) {
         (Some(dir), _) => (dir.to_path_buf(), "given with --dataset; check the path"),
         (None, Some(path)) => (
@@ -157,12 +151,17 @@ pub fn dataset_folder(
             "from [dataset] path in the config, relative to the config's folder; pass --dataset \
              DIR to use another one",
         ),
-        (None, None) if synthetic => (ctx.config_dir.clone(), ""),
+        (None, None) if !needs_path => (ctx.config_dir.clone(), ""),
         (None, None) => return Err(DatasetError::NoFolder),
     };
-    // A bag may be one storage file rather than a folder.
-    let bag_file = dir.is_file() && looks_like_bag(&dir);
-    if !synthetic && !dir.is_dir() && !bag_file {
+    // Some readers take one file (a bag's storage file) rather than a folder.
+    let taken_file = dir.is_file()
+        && (looks_like_bag(&dir)
+            || registry
+                .dataset_probes()
+                .iter()
+                .any(|(_, p)| (p.probe)(&dir)));
+    if needs_path && !dir.is_dir() && !taken_file {
         return Err(DatasetError::NoSuchFolder {
             path: dir,
             hint: hint.to_owned(),
@@ -171,49 +170,44 @@ pub fn dataset_folder(
     Ok(dir)
 }
 
-/// Opens the dataset folder `dir` with the reader that `config.kind` names, or the one
-/// [`detect_kind`] picks for `auto`. `config.path` is not used: the caller resolves it to `dir`.
-/// `kind = "synthetic"` needs no folder: `dir` is ignored and the scene of `[dataset.synthetic]` is
-/// generated ([`SyntheticReader::open`]).
+/// Opens the dataset at `path` with the registered reader that `config.kind` names, or the one
+/// [`detect_kind`] picks for `auto`. `config.path` is not used: the caller resolves it to `path`
+/// ([`dataset_folder`]). A reader that reads no path (`kind = "synthetic"`) ignores it.
 ///
 /// # Errors
-/// The errors of [`detect_kind`] and of the reader's `open` (e.g. [`IclReader::open`]); an empty
-/// dataset is [`DatasetError::Empty`]; [`DatasetError::BadConfig`] when `[dataset.synthetic]` is set
-/// but `kind` is not `synthetic`.
-pub fn open(config: &DatasetConfig, dir: &Path) -> Result<Box<dyn FrameSource>> {
-    if config.kind == DatasetKind::Synthetic {
-        return Ok(Box::new(SyntheticReader::open(config)?));
-    }
-    if config.rosbag2.is_some() && !matches!(config.kind, DatasetKind::Rosbag2 | DatasetKind::Auto)
-    {
-        return Err(DatasetError::BadConfig {
-            path: dir.to_path_buf(),
-            message: "rosbag2 is set but kind is not \"rosbag2\"; set kind = \"rosbag2\" or \
-                      remove [dataset.rosbag2]"
-                .to_owned(),
-        });
-    }
-    if config.synthetic.is_some() {
-        return Err(DatasetError::BadConfig {
-            path: dir.to_path_buf(),
-            message: "synthetic is set but kind is not \"synthetic\"; set kind = \"synthetic\" \
-                      or remove [dataset.synthetic]"
-                .to_owned(),
-        });
-    }
-    let kind = match config.kind {
-        DatasetKind::Auto => detect_kind(dir)?,
-        kind => kind,
+/// [`vlem_core::CoreError::UnknownImplementation`] for an unknown kind (listing the known ones
+/// and the feature that adds a missing one), the errors of [`detect_kind`] and of the reader's
+/// `open` (e.g. [`IclReader::open`]) as [`vlem_core::CoreError::Dataset`], and a reader-owned key
+/// it does not know as [`vlem_core::CoreError::InvalidParams`].
+pub fn open(config: &DatasetConfig, path: &Path) -> vlem_core::Result<Box<dyn FrameSource>> {
+    let registry = Registry::global()?;
+    let kind = if config.kind == AUTO_DATASET {
+        detect_kind(path)?
+    } else {
+        config.kind.as_str()
     };
-    Ok(match kind {
-        DatasetKind::Tum => Box::new(TumReader::open(dir, config)?),
-        DatasetKind::Scannet => Box::new(ScanNetReader::open(dir, config)?),
-        DatasetKind::Replica => Box::new(ReplicaReader::open(dir, config)?),
-        DatasetKind::Synthetic => Box::new(SyntheticReader::open(config)?),
-        DatasetKind::Rosbag2 => open_bag(config, dir)?,
-        // `detect_kind` never returns `Auto`, so this arm is ICL only.
-        DatasetKind::Icl | DatasetKind::Auto => Box::new(IclReader::open(dir, config)?),
-    })
+    (registry.dataset(kind)?.open)(config, path)
+}
+
+/// Checks the reader-owned keys of `config` without opening the dataset, so that a typo is found
+/// before a long job starts: the reader `kind` names, or for `auto` the one [`detect_kind`] picks
+/// at `path` where that exists (elsewhere the check waits for [`open`]).
+///
+/// # Errors
+/// [`vlem_core::CoreError::UnknownImplementation`] for an unknown kind, and
+/// [`vlem_core::CoreError::InvalidParams`] naming a key the reader does not take.
+pub fn check_settings(config: &DatasetConfig, path: Option<&Path>) -> vlem_core::Result<()> {
+    let kind = if config.kind != AUTO_DATASET {
+        config.kind.as_str()
+    } else if let Some(kind) = path.and_then(|p| detect_kind(p).ok()) {
+        kind
+    } else {
+        return Ok(());
+    };
+    match Registry::global()?.dataset(kind)?.check_settings {
+        Some(check) => check(config),
+        None => Ok(()),
+    }
 }
 
 /// The trajectory file of the dataset folder `dir`, found as its reader finds it: an ICL-NUIM or
@@ -222,53 +216,20 @@ pub fn open(config: &DatasetConfig, dir: &Path) -> Result<Box<dyn FrameSource>> 
 /// and the like, so that a user need not know the file's name.
 ///
 /// # Errors
-/// [`DatasetError::MissingFile`] when the folder has no trajectory (naming what was looked for),
-/// [`DatasetError::Ambiguous`] for several `.log` files, and [`DatasetError::UnknownLayout`] or
-/// [`DatasetError::BadConfig`] for layouts without one trajectory file (ScanNet keeps a pose per
-/// frame, bags and the synthetic scene none as a file).
-pub fn trajectory_file(dir: &Path) -> Result<std::path::PathBuf> {
-    let existing = |name: &str, hint: &str| {
-        let path = dir.join(name);
-        sequence::require_file(&path, || hint.to_owned()).map(|()| path)
-    };
-    match detect_kind(dir)? {
-        DatasetKind::Tum => existing("groundtruth.txt", "a TUM RGB-D folder's trajectory"),
-        DatasetKind::Replica => existing("traj.txt", "a Replica folder's trajectory"),
-        DatasetKind::Icl | DatasetKind::Auto => {
-            icl::find_trajectory(dir, &DatasetConfig::default())?.ok_or_else(|| {
-                DatasetError::MissingFile {
-                    path: dir.join("trajectory.log"),
-                    hint:
-                        "an ICL-NUIM/Redwood folder's trajectory: trajectory.log or one .log file"
-                            .to_owned(),
-                }
-            })
+/// The errors of [`detect_kind`]; the reader's, naming what was looked for, when the folder has
+/// no trajectory; [`DatasetError::BadConfig`] for layouts without one trajectory file (ScanNet
+/// keeps a pose per frame, a bag its poses in messages).
+pub fn trajectory_file(dir: &Path) -> vlem_core::Result<PathBuf> {
+    let kind = detect_kind(dir)?;
+    match Registry::global()?.dataset(kind)?.trajectory_file {
+        Some(find) => find(dir),
+        None => Err(DatasetError::BadConfig {
+            path: dir.to_path_buf(),
+            message: format!(
+                "a {kind} dataset keeps no single trajectory file (ScanNet has a pose file per \
+                 frame, a bag its poses in messages): pass a trajectory file (TUM or .log) itself"
+            ),
         }
-        DatasetKind::Scannet | DatasetKind::Rosbag2 | DatasetKind::Synthetic => {
-            Err(DatasetError::BadConfig {
-                path: dir.to_path_buf(),
-                message: "this dataset keeps no single trajectory file (ScanNet has a pose file \
-                          per frame, a bag its poses in messages): pass a trajectory file (TUM \
-                          or .log) itself"
-                    .to_owned(),
-            })
-        }
+        .into()),
     }
-}
-
-/// The reader of a ROS 2 bag, where the `rosbag2` feature is built.
-#[cfg(feature = "rosbag2")]
-fn open_bag(config: &DatasetConfig, path: &Path) -> Result<Box<dyn FrameSource>> {
-    Ok(Box::new(Rosbag2Reader::open(path, config)?))
-}
-
-/// Without the `rosbag2` feature: an error that says how to build it.
-#[cfg(not(feature = "rosbag2"))]
-fn open_bag(_config: &DatasetConfig, path: &Path) -> Result<Box<dyn FrameSource>> {
-    Err(DatasetError::BadConfig {
-        path: path.to_path_buf(),
-        message: "kind = \"rosbag2\" (a ROS 2 bag) needs vlem built with the `rosbag2` feature: \
-                  cargo build --release --features rosbag2"
-            .to_owned(),
-    })
 }

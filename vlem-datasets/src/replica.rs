@@ -13,20 +13,43 @@
 use std::path::Path;
 
 use nalgebra::Matrix4;
-use vlem_core::Pose;
 use vlem_core::config::DatasetConfig;
+use vlem_core::{DatasetReader, FrameSource, Pose};
 
 use crate::calibration::REPLICA_DEFAULT_INTRINSICS;
 use crate::error::Result;
 use crate::sequence::{
-    Camera, ColourFit, Entry, MissingFrames, Selection, Sequence, attach_trajectory, depth_scale,
-    list_files, reader_via_sequence, require_file,
+    Camera, ColourFit, Entry, IntrinsicsSetting, MissingFrames, Selection, Sequence,
+    attach_trajectory, check_settings, depth_scale, list_files, reader_settings,
+    reader_via_sequence, require_file,
 };
 use crate::text::{data_lines, parse_exact, read_text};
 use crate::trajectory::pose_from_matrix;
 
 /// Raw depth units per metre of NICE-SLAM's Replica renders.
 pub const REPLICA_DEPTH_SCALE: f64 = 6553.5;
+
+/// The registered name: `[dataset] kind = "replica"`.
+pub const REPLICA: &str = "replica";
+
+vlem_core::register_dataset!(
+    REPLICA,
+    "Replica as packaged by NICE-SLAM: results/, traj.txt; depth scale 6553.5",
+    DatasetReader::new(open_boxed)
+        .detected_by(20, "results/ (Replica, NICE-SLAM)", |dir| dir
+            .join("results")
+            .is_dir())
+        .with_trajectory_file(|dir| {
+            let path = dir.join("traj.txt");
+            require_file(&path, || "a Replica folder's trajectory".to_owned())?;
+            Ok(path)
+        })
+        .with_settings_check(|config| check_settings::<IntrinsicsSetting>(REPLICA, config))
+);
+
+fn open_boxed(config: &DatasetConfig, dir: &Path) -> vlem_core::Result<Box<dyn FrameSource>> {
+    Ok(Box::new(ReplicaReader::open(dir, config)?))
+}
 
 /// Reader of a NICE-SLAM Replica scene folder (see the module docs).
 #[derive(Debug)]
@@ -45,6 +68,7 @@ impl ReplicaReader {
     /// for a bad `traj.txt` line, [`DatasetError::TooFewPoses`](crate::DatasetError::TooFewPoses), the errors of
     /// [`read_open3d_intrinsics`](crate::read_open3d_intrinsics), [`DatasetError::BadConfig`](crate::DatasetError::BadConfig) and [`DatasetError::Empty`](crate::DatasetError::Empty).
     pub fn open(dir: &Path, config: &DatasetConfig) -> Result<Self> {
+        let settings: IntrinsicsSetting = reader_settings(REPLICA, config)?;
         let selection = Selection::from_config(config, dir)?;
         let scale = depth_scale(config, REPLICA_DEPTH_SCALE, dir)?;
         let entries = frame_files(dir)?;
@@ -57,8 +81,8 @@ impl ReplicaReader {
             let poses: Vec<(u64, Pose)> = (0u64..).zip(read_trajectory(&trajectory)?).collect();
             attach_trajectory(&mut selected, &missing, &poses, &trajectory)?;
         }
-        let camera = Camera::from_config_or_default(
-            config,
+        let camera = Camera::from_setting_or_default(
+            settings.intrinsics.as_deref(),
             dir,
             REPLICA_DEFAULT_INTRINSICS,
             "the NICE-SLAM Replica default 600/600/599.5/339.5; set [dataset] intrinsics",

@@ -15,21 +15,41 @@
 
 use std::path::Path;
 
-use vlem_core::Intrinsics;
 use vlem_core::config::DatasetConfig;
+use vlem_core::{DatasetReader, FrameSource, Intrinsics};
 
 use crate::calibration::validated;
 use crate::error::{DatasetError, Result};
 use crate::images;
 use crate::sequence::{
-    Camera, ColourFit, Entry, PoseRef, Selection, Sequence, depth_scale, list_files,
-    reader_via_sequence, require_file,
+    Camera, ColourFit, Entry, NoSettings, PoseRef, Selection, Sequence, check_settings,
+    depth_scale, list_files, reader_settings, reader_via_sequence, require_file,
 };
 use crate::text::read_text;
 use crate::trajectory::matrix_rows_from_str;
 
 /// Raw depth units per metre of ScanNet (millimetres).
 pub const SCANNET_DEPTH_SCALE: f64 = 1000.0;
+
+/// The registered name: `[dataset] kind = "scannet"`.
+pub const SCANNET: &str = "scannet";
+
+vlem_core::register_dataset!(
+    SCANNET,
+    "ScanNet exports: color/, depth/, pose/, intrinsic/; depth scale 1000",
+    DatasetReader::new(open_boxed)
+        .detected_by(
+            30,
+            "intrinsic/ or pose/ beside depth/ (ScanNet export)",
+            |dir| dir.join("depth").is_dir()
+                && (dir.join("intrinsic").is_dir() || dir.join("pose").is_dir())
+        )
+        .with_settings_check(|config| check_settings::<NoSettings>(SCANNET, config))
+);
+
+fn open_boxed(config: &DatasetConfig, dir: &Path) -> vlem_core::Result<Box<dyn FrameSource>> {
+    Ok(Box::new(ScanNetReader::open(dir, config)?))
+}
 
 /// Reader of a ScanNet export folder (see the module docs).
 #[derive(Debug)]
@@ -49,6 +69,7 @@ impl ScanNetReader {
     /// [`DatasetError::Core`] for invalid intrinsics, [`DatasetError::BadConfig`] and
     /// [`DatasetError::Empty`].
     pub fn open(dir: &Path, config: &DatasetConfig) -> Result<Self> {
+        let _: NoSettings = reader_settings(SCANNET, config)?;
         let selection = Selection::from_config(config, dir)?;
         let scale = depth_scale(config, SCANNET_DEPTH_SCALE, dir)?;
         let selected = selection.apply(frame_files(dir)?);

@@ -76,13 +76,13 @@ impl Camera {
 
     /// The `[dataset] intrinsics` file (relative to `dir`) if the config names one, else the
     /// layout's documented `default`, described by `origin` in error messages.
-    pub(crate) fn from_config_or_default(
-        config: &DatasetConfig,
+    pub(crate) fn from_setting_or_default(
+        intrinsics: Option<&Path>,
         dir: &Path,
         default: Intrinsics,
         origin: &str,
     ) -> Result<Self> {
-        Ok(match &config.intrinsics {
+        Ok(match intrinsics {
             Some(path) => {
                 let path = dir.join(path);
                 Self::from_file(crate::calibration::read_open3d_intrinsics(&path)?, &path)
@@ -93,6 +93,55 @@ impl Camera {
             },
         })
     }
+}
+
+/// `[dataset]` keys of readers whose only own setting is an intrinsics file.
+#[derive(Debug, Default, serde::Deserialize)]
+#[serde(deny_unknown_fields)]
+pub(crate) struct IntrinsicsSetting {
+    /// Open3D intrinsics JSON replacing the layout's camera, relative to the dataset folder.
+    #[serde(default)]
+    pub(crate) intrinsics: Option<std::path::PathBuf>,
+}
+
+/// `[dataset]` keys of readers that have no settings of their own.
+#[derive(Debug, Default, serde::Deserialize)]
+#[serde(deny_unknown_fields)]
+pub(crate) struct NoSettings {}
+
+/// [`reader_settings`] for a registration's settings check: parses and drops them.
+///
+/// # Errors
+/// [`vlem_core::CoreError::InvalidParams`] naming the key.
+pub(crate) fn check_settings<T: serde::de::DeserializeOwned>(
+    reader: &str,
+    config: &DatasetConfig,
+) -> vlem_core::Result<()> {
+    reader_settings::<T>(reader, config)?;
+    Ok(())
+}
+
+/// The reader-owned keys of `[dataset]` (everything but the shared ones) as reader `reader`'s
+/// settings struct, refusing keys it does not know.
+///
+/// # Errors
+/// [`DatasetError::InvalidSettings`] naming the key.
+pub(crate) fn reader_settings<T: serde::de::DeserializeOwned>(
+    reader: &str,
+    config: &DatasetConfig,
+) -> Result<T> {
+    T::deserialize(toml::Value::Table(config.params.clone())).map_err(|e| {
+        let mut message = e.to_string().trim().to_owned();
+        if message.contains("unknown field") {
+            message.push_str(
+                " (every reader also takes path, kind, depth_scale, stride and max_frames)",
+            );
+        }
+        DatasetError::InvalidSettings {
+            reader: reader.to_owned(),
+            message,
+        }
+    })
 }
 
 /// Which frames of the underlying sequence are used: every `stride`-th, at most `max_frames`.

@@ -17,14 +17,14 @@
 
 use std::path::{Path, PathBuf};
 
-use vlem_core::Pose;
 use vlem_core::config::DatasetConfig;
+use vlem_core::{DatasetReader, FrameSource, Pose};
 
 use crate::calibration::TUM_DEFAULT_INTRINSICS;
 use crate::error::{DatasetError, Result};
 use crate::sequence::{
-    Camera, ColourFit, Entry, PoseRef, Selection, Sequence, depth_scale, reader_via_sequence,
-    require_file,
+    Camera, ColourFit, Entry, IntrinsicsSetting, PoseRef, Selection, Sequence, check_settings,
+    depth_scale, reader_settings, reader_via_sequence, require_file,
 };
 use crate::text::{data_lines, parse_number, read_text};
 use crate::trajectory::read_tum;
@@ -35,6 +35,28 @@ pub const TUM_DEPTH_SCALE: f64 = 5000.0;
 /// Largest time difference, in seconds, between a depth image and the colour image or ground-truth
 /// pose associated with it (the value of TUM's own `associate.py`).
 pub const TUM_MAX_TIME_DIFFERENCE: f64 = 0.02;
+
+/// The registered name: `[dataset] kind = "tum"`.
+pub const TUM: &str = "tum";
+
+vlem_core::register_dataset!(
+    TUM,
+    "TUM RGB-D: rgb.txt, depth.txt, groundtruth.txt; depth scale 5000",
+    DatasetReader::new(open_boxed)
+        .detected_by(10, "rgb.txt and depth.txt (TUM RGB-D)", |dir| {
+            dir.join("rgb.txt").is_file() && dir.join("depth.txt").is_file()
+        })
+        .with_trajectory_file(|dir| {
+            let path = dir.join("groundtruth.txt");
+            require_file(&path, || "a TUM RGB-D folder's trajectory".to_owned())?;
+            Ok(path)
+        })
+        .with_settings_check(|config| check_settings::<IntrinsicsSetting>(TUM, config))
+);
+
+fn open_boxed(config: &DatasetConfig, dir: &Path) -> vlem_core::Result<Box<dyn FrameSource>> {
+    Ok(Box::new(TumReader::open(dir, config)?))
+}
 
 /// Reader of a TUM RGB-D sequence folder (see the module docs).
 #[derive(Debug)]
@@ -60,6 +82,7 @@ impl TumReader {
     /// [`read_open3d_intrinsics`](crate::read_open3d_intrinsics), [`DatasetError::NoPoseNear`] for a frame without ground truth,
     /// [`DatasetError::BadConfig`] and [`DatasetError::Empty`].
     pub fn open(dir: &Path, config: &DatasetConfig) -> Result<Self> {
+        let settings: IntrinsicsSetting = reader_settings(TUM, config)?;
         let selection = Selection::from_config(config, dir)?;
         let scale = depth_scale(config, TUM_DEPTH_SCALE, dir)?;
         let colour = read_list(dir, "rgb.txt")?;
@@ -78,8 +101,8 @@ impl TumReader {
         if groundtruth.is_file() {
             attach_groundtruth(&mut selected, &groundtruth)?;
         }
-        let camera = Camera::from_config_or_default(
-            config,
+        let camera = Camera::from_setting_or_default(
+            settings.intrinsics.as_deref(),
             dir,
             TUM_DEFAULT_INTRINSICS,
             "the TUM RGB-D default 525/525/319.5/239.5; set [dataset] intrinsics",

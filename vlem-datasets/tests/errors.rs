@@ -3,7 +3,7 @@
 
 mod common;
 
-use vlem_core::config::{DatasetConfig, DatasetKind};
+use vlem_core::config::DatasetConfig;
 use vlem_datasets::{DatasetError, IclReader, detect_kind};
 
 fn icl_error(dir: &std::path::Path) -> String {
@@ -42,10 +42,9 @@ fn missing_intrinsics_lists_what_was_looked_for() {
     );
     assert!(err.contains("[dataset] intrinsics"), "{err}");
 
-    let config = DatasetConfig {
-        intrinsics: Some("nowhere.json".into()),
-        ..DatasetConfig::default()
-    };
+    let config = DatasetConfig::default()
+        .with_param("intrinsics", "nowhere.json")
+        .unwrap();
     let err = IclReader::open(tmp.path(), &config)
         .unwrap_err()
         .to_string();
@@ -241,7 +240,7 @@ fn bad_config_values() {
     common::write_icl(tmp.path(), 0, 1, false);
     let config = DatasetConfig {
         depth_scale: Some(0.0),
-        kind: DatasetKind::Icl,
+        kind: "icl".into(),
         ..DatasetConfig::default()
     };
     let err = common::open_error(&config, tmp.path());
@@ -308,11 +307,8 @@ fn a_depth_image_of_another_size_is_refused_from_its_header_before_decoding() {
 #[test]
 fn bags_are_detected_and_a_build_without_the_reader_says_so() {
     let bag = std::path::Path::new(env!("CARGO_MANIFEST_DIR")).join("tests/data/rosbag2/raw-mcap");
-    assert_eq!(detect_kind(&bag).unwrap(), DatasetKind::Rosbag2);
-    let config = DatasetConfig {
-        kind: DatasetKind::Rosbag2,
-        ..DatasetConfig::default()
-    };
+    assert_eq!(detect_kind(&bag).unwrap(), "rosbag2");
+    let config = DatasetConfig::named("rosbag2");
     let opened = vlem_datasets::open(&config, &bag);
     if cfg!(feature = "rosbag2") {
         // The default topics are not in this bag: the error lists the ones that are.
@@ -328,16 +324,17 @@ fn bags_are_detected_and_a_build_without_the_reader_says_so() {
             "{err}"
         );
     }
-    let config = DatasetConfig {
-        kind: DatasetKind::Icl,
-        rosbag2: Some(Default::default()),
-        ..DatasetConfig::default()
-    };
+    let config = DatasetConfig::named("icl")
+        .with_param("rosbag2", vlem_datasets::Rosbag2Config::default())
+        .unwrap();
     let err = vlem_datasets::open(&config, &bag)
         .err()
         .unwrap()
         .to_string();
-    assert!(err.contains("kind is not \"rosbag2\""), "{err}");
+    assert!(
+        err.starts_with("[dataset] kind = \"icl\": unknown field `rosbag2`"),
+        "{err}"
+    );
 }
 
 /// Removes frame `k`'s colour and depth images from an ICL folder written by `write_icl`.

@@ -8,7 +8,7 @@ use std::path::Path;
 
 use nalgebra::{Point3, Vector3};
 use vlem_core::FrameSource;
-use vlem_core::config::{DatasetConfig, DatasetKind};
+use vlem_core::config::DatasetConfig;
 use vlem_datasets::{
     IclReader, REPLICA_DEFAULT_INTRINSICS, ReplicaReader, ScanNetReader, TUM_DEFAULT_INTRINSICS,
     TumReader, detect_kind, open,
@@ -98,7 +98,7 @@ fn redwood_image_folder_and_match_file() {
         dir.join("camera_intrinsic.json"),
     )
     .unwrap();
-    assert_eq!(detect_kind(dir).unwrap(), DatasetKind::Icl);
+    assert_eq!(detect_kind(dir).unwrap(), "icl");
     assert_eq!(
         IclReader::open(dir, &DatasetConfig::default())
             .unwrap()
@@ -140,10 +140,9 @@ fn icl_trajectory_from_config_and_only_log_file() {
         err.contains("several trajectories") && err.contains("other.log, poses.log"),
         "{err}"
     );
-    let config = DatasetConfig {
-        trajectory: Some("other.log".into()),
-        ..DatasetConfig::default()
-    };
+    let config = DatasetConfig::default()
+        .with_param("trajectory", "other.log")
+        .unwrap();
     assert!(IclReader::open(dir, &config).unwrap().has_poses());
 }
 
@@ -170,10 +169,9 @@ fn write_tum(dir: &Path, rgb_times: &[f64], depth_times: &[f64], groundtruth: Op
 }
 
 fn tum_config() -> DatasetConfig {
-    DatasetConfig {
-        intrinsics: Some("camera.json".into()),
-        ..DatasetConfig::default()
-    }
+    DatasetConfig::default()
+        .with_param("intrinsics", "camera.json")
+        .unwrap()
 }
 
 #[test]
@@ -182,7 +180,7 @@ fn tum_associates_within_20_ms_and_drops_the_rest() {
     let dir = tmp.path();
     // Depth 1.050 has its nearest colour 1.080 (30 ms away): dropped.
     write_tum(dir, &[1.005, 1.080, 1.118], &[1.000, 1.050, 1.100], None);
-    assert_eq!(detect_kind(dir).unwrap(), DatasetKind::Tum);
+    assert_eq!(detect_kind(dir).unwrap(), "tum");
     let reader = TumReader::open(dir, &tum_config()).unwrap();
     assert_eq!(reader.len(), 2);
     assert!(!reader.has_poses());
@@ -294,7 +292,7 @@ fn scannet_resizes_colour_to_depth_and_uses_depth_intrinsics() {
     let tmp = tempfile::tempdir().unwrap();
     let dir = tmp.path();
     write_scannet(dir, 12);
-    assert_eq!(detect_kind(dir).unwrap(), DatasetKind::Scannet);
+    assert_eq!(detect_kind(dir).unwrap(), "scannet");
     let mut source = open(&DatasetConfig::default(), dir).unwrap();
     assert_eq!(source.len(), 12);
     let k = source.intrinsics();
@@ -372,7 +370,7 @@ fn replica_scale_poses_and_default_camera() {
         traj.push('\n');
     }
     std::fs::write(dir.join("traj.txt"), traj).unwrap();
-    assert_eq!(detect_kind(dir).unwrap(), DatasetKind::Replica);
+    assert_eq!(detect_kind(dir).unwrap(), "replica");
     let reader = ReplicaReader::open(dir, &DatasetConfig::default()).unwrap();
     assert_eq!(reader.intrinsics(), REPLICA_DEFAULT_INTRINSICS);
     assert_eq!(reader.len(), 2);
@@ -407,7 +405,7 @@ fn replica_with_too_short_trajectory() {
     // With one frame it is enough.
     let config = DatasetConfig {
         max_frames: Some(1),
-        kind: DatasetKind::Replica,
+        kind: "replica".into(),
         ..DatasetConfig::default()
     };
     assert!(open(&config, dir).unwrap().has_poses());
@@ -417,10 +415,7 @@ fn replica_with_too_short_trajectory() {
 fn explicit_kind_skips_detection() {
     let tmp = tempfile::tempdir().unwrap();
     common::write_icl(tmp.path(), 0, 2, false);
-    let config = DatasetConfig {
-        kind: DatasetKind::Tum,
-        ..DatasetConfig::default()
-    };
+    let config = DatasetConfig::named("tum");
     let err = common::open_error(&config, tmp.path());
     assert!(err.contains("rgb.txt: not found"), "{err}");
 }

@@ -5,13 +5,13 @@ mod common;
 
 use nalgebra::Vector3;
 use vlem_core::FrameSource;
-use vlem_core::config::{DatasetConfig, DatasetKind};
+use vlem_core::config::DatasetConfig;
 use vlem_datasets::{IclReader, TumReader, detect_kind, open};
 
 #[test]
 fn living_room_frames_intrinsics_and_poses() {
     let dir = common::living_room();
-    assert_eq!(detect_kind(&dir).unwrap(), DatasetKind::Icl);
+    assert_eq!(detect_kind(&dir).unwrap(), "icl");
     let mut source = open(&DatasetConfig::default(), &dir).unwrap();
     assert_eq!(source.len(), 30);
     assert!(source.has_poses());
@@ -75,10 +75,9 @@ fn shared_redwood_samples_use_rgbd_match_and_trajectory_log() {
     let tmp = tempfile::tempdir().unwrap();
     let intrinsics = tmp.path().join("camera.json");
     common::write_intrinsics(&intrinsics, 640, 480, 525.0, 525.0, 319.5, 239.5);
-    let config = DatasetConfig {
-        intrinsics: Some(intrinsics),
-        ..DatasetConfig::default()
-    };
+    let config = DatasetConfig::default()
+        .with_param("intrinsics", &intrinsics)
+        .unwrap();
     let mut source = open(&config, &dir).unwrap();
     assert_eq!(source.len(), 5);
     let frame = source.frame(0).unwrap();
@@ -123,7 +122,7 @@ fn shared_tum_frame_reads_at_scale_5000() {
         "# depth maps\n1305031102.160407 depth/1305031102.160407.png\n",
     )
     .unwrap();
-    assert_eq!(detect_kind(root).unwrap(), DatasetKind::Tum);
+    assert_eq!(detect_kind(root).unwrap(), "tum");
     let reader = TumReader::open(root, &DatasetConfig::default()).unwrap();
     assert!(!reader.has_poses());
     let frame = reader.load(0).unwrap();

@@ -14,7 +14,8 @@ mod common;
 use std::path::PathBuf;
 
 use vlem_core::Frame;
-use vlem_core::config::{DatasetConfig, DatasetKind, Rosbag2Config};
+use vlem_core::config::DatasetConfig;
+use vlem_datasets::Rosbag2Config;
 use vlem_datasets::{detect_kind, open};
 
 /// Seconds of frame `i`'s stamp in the test bags.
@@ -36,11 +37,7 @@ fn compressed(depth_topic: &str, poses: impl FnOnce(&mut Rosbag2Config)) -> Data
         ..Rosbag2Config::default()
     };
     poses(&mut settings);
-    DatasetConfig {
-        kind: DatasetKind::Rosbag2,
-        rosbag2: Some(settings),
-        ..DatasetConfig::default()
-    }
+    settings.dataset_config().unwrap()
 }
 
 const DEPTH_PNG: &str = "/camera/aligned_depth_to_color/image_raw/compressed";
@@ -61,7 +58,7 @@ fn compressed_bags_give_the_folders_frames_and_poses_from_each_source() {
     let expected = folder_frames(5);
     for name in BAGS {
         let path = bag(name);
-        assert_eq!(detect_kind(&path).unwrap(), DatasetKind::Rosbag2);
+        assert_eq!(detect_kind(&path).unwrap(), "rosbag2");
         type SetPoses = Box<dyn Fn(&mut Rosbag2Config)>;
         let sources: [(&str, SetPoses); 3] = [
             (
@@ -156,10 +153,7 @@ fn default_topics_fall_back_to_their_image_transport_names() {
     // the default topics find them, depth's own transport first, and say so.
     let expected = folder_frames(5);
     for name in BAGS {
-        let config = DatasetConfig {
-            kind: DatasetKind::Rosbag2,
-            ..DatasetConfig::default()
-        };
+        let config = DatasetConfig::named("rosbag2");
         let mut source = open(&config, &bag(name)).unwrap();
         assert_eq!(source.len(), 5, "{name}");
         let warnings = source.warnings();
@@ -188,14 +182,12 @@ fn default_topics_fall_back_to_their_image_transport_names() {
         }
     }
     // A bag with neither the topic nor its transports names all three.
-    let config = DatasetConfig {
-        kind: DatasetKind::Rosbag2,
-        rosbag2: Some(Rosbag2Config {
-            depth_topic: "/camera/depth".into(),
-            ..Rosbag2Config::default()
-        }),
-        ..DatasetConfig::default()
-    };
+    let config = Rosbag2Config {
+        depth_topic: "/camera/depth".into(),
+        ..Rosbag2Config::default()
+    }
+    .dataset_config()
+    .unwrap();
     let message = open(&config, &bag("living-room-mcap"))
         .err()
         .unwrap()
@@ -212,7 +204,7 @@ fn default_topics_fall_back_to_their_image_transport_names() {
 #[test]
 fn one_storage_file_opens_without_its_folder() {
     let file = bag("living-room-mcap").join("living-room-mcap.mcap");
-    assert_eq!(detect_kind(&file).unwrap(), DatasetKind::Rosbag2);
+    assert_eq!(detect_kind(&file).unwrap(), "rosbag2");
     let config = DatasetConfig {
         max_frames: Some(2),
         stride: Some(2),
@@ -229,17 +221,15 @@ fn one_storage_file_opens_without_its_folder() {
 
 /// The raw bags: 80×60 images, pixel (x, y) = pixel (8x, 8y) of the folder's frame.
 fn raw(colour: &str, depth: &str) -> DatasetConfig {
-    DatasetConfig {
-        kind: DatasetKind::Rosbag2,
-        rosbag2: Some(Rosbag2Config {
-            colour_topic: colour.into(),
-            depth_topic: depth.into(),
-            camera_info_topic: "/raw/camera_info".into(),
-            pose_topic: Some("/raw/pose".into()),
-            ..Rosbag2Config::default()
-        }),
-        ..DatasetConfig::default()
+    Rosbag2Config {
+        colour_topic: colour.into(),
+        depth_topic: depth.into(),
+        camera_info_topic: "/raw/camera_info".into(),
+        pose_topic: Some("/raw/pose".into()),
+        ..Rosbag2Config::default()
     }
+    .dataset_config()
+    .unwrap()
 }
 
 #[test]
@@ -303,8 +293,7 @@ fn wrong_topics_and_encodings_are_clear_errors() {
         "{err}"
     );
     // A topic of the wrong type.
-    let mut config = compressed(DEPTH_PNG, |_| {});
-    config.rosbag2.as_mut().unwrap().colour_topic = "/chatter".into();
+    let config = compressed(DEPTH_PNG, |s| s.colour_topic = "/chatter".into());
     let err = open_error(&config, "living-room-sqlite");
     assert!(
         err.contains("topic /chatter has type std_msgs/msg/String"),
@@ -346,8 +335,9 @@ fn doubtful_calibration_and_frames_are_warnings() {
     assert!(warnings.contains("plumb_bob distortion"), "{warnings}");
     assert!(warnings.contains("frame `base_link`"), "{warnings}");
     // [dataset] intrinsics replaces the camera info (and needs no camera info topic).
-    let mut config = compressed(DEPTH_PNG, |s| s.camera_info_topic = "/none".into());
-    config.intrinsics = Some(common::living_room().join("intrinsics.json"));
+    let config = compressed(DEPTH_PNG, |s| s.camera_info_topic = "/none".into())
+        .with_param("intrinsics", common::living_room().join("intrinsics.json"))
+        .unwrap();
     let source = open(&config, &bag("living-room-sqlite")).unwrap();
     assert_eq!(source.intrinsics().fx, 525.0);
 }

@@ -10,11 +10,12 @@
 use std::path::Path;
 
 use nalgebra::Vector3;
-use vlem_core::config::{DatasetConfig, DatasetKind, SyntheticConfig, SyntheticNoise};
+use vlem_core::config::DatasetConfig;
 use vlem_core::{Config, FrameSource, Intrinsics};
 use vlem_datasets::synthetic::{
     SYNTHETIC_FRAME_RATE, SYNTHETIC_LABELS, SyntheticView, look_along, write_to_disk,
 };
+use vlem_datasets::{SyntheticConfig, SyntheticNoise};
 use vlem_datasets::{SyntheticReader, SyntheticScene, detect_kind, open};
 
 fn config(seed: u64, frames: usize, width: u32, height: u32) -> SyntheticConfig {
@@ -360,7 +361,7 @@ fn a_scene_written_to_disk_reads_back_through_the_icl_reader() {
     let tmp = tempfile::tempdir().unwrap();
     let scene = SyntheticScene::new(&config(3, 5, 160, 120)).unwrap();
     write_to_disk(&scene, tmp.path()).unwrap();
-    assert_eq!(detect_kind(tmp.path()).unwrap(), DatasetKind::Icl);
+    assert_eq!(detect_kind(tmp.path()).unwrap(), "icl");
     let mut source = open(&DatasetConfig::default(), tmp.path()).unwrap();
     assert_eq!(source.len(), 5);
     assert!(source.has_poses());
@@ -427,7 +428,14 @@ fn kind_synthetic_opens_from_a_config_without_a_folder() {
     assert!(source.has_poses());
     assert!(source.describe().contains("synthetic scene (seed 2"));
     let frame = source.frame(2).unwrap();
-    let scene = SyntheticScene::new(config.dataset.synthetic.as_ref().unwrap()).unwrap();
+    let scene = SyntheticScene::new(&SyntheticConfig {
+        seed: 2,
+        frames: 10,
+        width: 64,
+        height: 48,
+        ..SyntheticConfig::default()
+    })
+    .unwrap();
     assert_eq!(frame.index, 2);
     assert_eq!(frame.timestamp, 8.0 / SYNTHETIC_FRAME_RATE);
     assert_eq!(frame.pose.unwrap(), scene.pose(8).unwrap());
@@ -443,7 +451,7 @@ fn kind_synthetic_opens_from_a_config_without_a_folder() {
 
     // Without [dataset.synthetic] every default applies.
     let reader = SyntheticReader::open(&DatasetConfig {
-        kind: DatasetKind::Synthetic,
+        kind: "synthetic".into(),
         max_frames: Some(4),
         ..DatasetConfig::default()
     })
@@ -496,18 +504,14 @@ fn bad_values_are_refused_naming_the_key() {
         let err = SyntheticScene::new(&cfg).unwrap_err().to_string();
         assert!(err.starts_with(expected), "{err}");
         // The same through the dataset entry point.
-        let dataset = DatasetConfig {
-            kind: DatasetKind::Synthetic,
-            synthetic: Some(cfg),
-            ..DatasetConfig::default()
-        };
+        let dataset = cfg.dataset_config().unwrap();
         let err = open(&dataset, Path::new(".")).err().unwrap().to_string();
         assert!(err.starts_with(expected), "{err}");
     }
     let with = |dataset: DatasetConfig| {
         open(
             &DatasetConfig {
-                kind: DatasetKind::Synthetic,
+                kind: "synthetic".into(),
                 ..dataset
             },
             Path::new("."),
@@ -532,17 +536,18 @@ fn bad_values_are_refused_naming_the_key() {
     // [dataset.synthetic] with another kind is a mistake, not silently ignored.
     let tmp = tempfile::tempdir().unwrap();
     let err = open(
-        &DatasetConfig {
-            kind: DatasetKind::Icl,
-            synthetic: Some(SyntheticConfig::default()),
-            ..DatasetConfig::default()
-        },
+        &DatasetConfig::named("icl")
+            .with_param("synthetic", SyntheticConfig::default())
+            .unwrap(),
         tmp.path(),
     )
     .err()
     .unwrap()
     .to_string();
-    assert!(err.contains("kind is not \"synthetic\""), "{err}");
+    assert!(
+        err.starts_with("[dataset] kind = \"icl\": unknown field `synthetic`"),
+        "{err}"
+    );
     let scene = SyntheticScene::new(&config(0, 5, 64, 48)).unwrap();
     let err = scene.render(5).unwrap_err().to_string();
     assert_eq!(

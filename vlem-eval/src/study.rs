@@ -340,12 +340,16 @@ impl Study {
             };
             let text = toml::to_string(&cell.config)
                 .map_err(|e| bad(path, format!("cell {}: {e}", cell.index)))?;
-            Config::from_toml(&text).map_err(|message| {
+            let in_cell = |message: String| {
                 bad(
                     path,
                     format!("cell {} ({}): {message}", cell.index, cell.label()),
                 )
-            })?;
+            };
+            let parsed = Config::from_toml(&text).map_err(in_cell)?;
+            // The dataset reader's own keys too (the cell's paths are absolute by now).
+            vlem_datasets::check_settings(&parsed.dataset, parsed.dataset.path.as_deref())
+                .map_err(|e| in_cell(e.to_string()))?;
             cells.push(cell);
         }
         Ok(Self { settings, cells })

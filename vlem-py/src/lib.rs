@@ -27,7 +27,8 @@ use pyo3::types::PyDict;
 use vlem_core::{Registry, StageKind};
 
 /// Every implementation compiled into this build, as ``vlem plugins`` lists them: one dict per
-/// implementation with ``stage``, ``section`` (its config section), ``name`` and ``description``.
+/// implementation with ``stage``, ``section`` (its config section), ``name``, ``description`` and
+/// ``feature`` (the cargo feature that compiles it in, ``None`` where every build has it).
 #[pyfunction]
 fn plugins(py: Python<'_>) -> PyResult<Vec<Bound<'_, PyDict>>> {
     let registry = Registry::global().map_err(errors::core)?;
@@ -39,6 +40,7 @@ fn plugins(py: Python<'_>) -> PyResult<Vec<Bound<'_, PyDict>>> {
             d.set_item("section", kind.section())?;
             d.set_item("name", r.name)?;
             d.set_item("description", r.description)?;
+            d.set_item("feature", registry.feature_of(kind, r.name))?;
             out.push(d);
         }
     }

@@ -118,6 +118,8 @@ pub struct PyPipeline {
     live: LiveMap,
     config: Config,
     ctx: BuildContext,
+    /// Where the config came from: a dataset reader's unknown key is found at `run`.
+    origin: ConfigOrigin,
     report: Arc<Mutex<Option<RunReport>>>,
 }
 
@@ -355,6 +357,7 @@ impl PyPipeline {
             pipeline: Arc::new(Mutex::new(Some(pipeline))),
             config,
             ctx,
+            origin,
             report: Arc::new(Mutex::new(None)),
         })
     }
@@ -401,7 +404,8 @@ impl PyPipeline {
         if max_frames.is_some() {
             dataset_config.max_frames = max_frames;
         }
-        let mut source = vlem_datasets::open(&dataset_config, &dir).map_err(errors::dataset)?;
+        let mut source = vlem_datasets::open(&dataset_config, &dir)
+            .map_err(|e| errors::core(self.origin.locate(e)))?;
         if let Some(bar) = &progress
             && bar.hasattr("update")?
             && bar.getattr("total").is_ok_and(|t| t.is_none())

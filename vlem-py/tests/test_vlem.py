@@ -52,7 +52,10 @@ def test_plugins_list_what_the_build_contains():
     assert ("encoder", "colour-names") in names
     assert ("encoder", "python") in names
     assert ("map", "point-cloud") in names
+    assert ("dataset", "icl") in names and ("dataset", "synthetic") in names
     assert all(p["description"] for p in vlem.plugins())
+    features = {p["name"]: p["feature"] for p in vlem.plugins()}
+    assert features["point-cloud"] == "point-cloud" and features["icl"] is None
 
 
 def test_a_run_gives_numpy_arrays_of_the_documented_dtypes():

@@ -22,7 +22,7 @@ use ros2_client::{
 };
 use serde::Serialize;
 use serde::de::DeserializeOwned;
-use vlem_core::config::{DEPTH_SCALE_RANGE, MAX_TIME_DIFFERENCE_S, Ros2Config, Ros2PoseType};
+use vlem_core::config::{DEPTH_SCALE_RANGE, MAX_TIME_DIFFERENCE_S};
 use vlem_core::live::LiveMap;
 use vlem_core::pipeline::{Pipeline, RunReport};
 use vlem_core::ranges;
@@ -32,6 +32,7 @@ use vlem_query::answer::{AnswerOptions, answer_live};
 use vlem_query::grasp::GraspParams;
 use vlem_query::heatmap::jet;
 
+use crate::config::{Ros2Config, Ros2PoseType};
 use crate::error::{Result, Ros2Error};
 use crate::frames::{Assembler, ImageMessage, PoseSource};
 use crate::msgs::{

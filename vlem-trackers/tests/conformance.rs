@@ -10,8 +10,8 @@
 
 use std::sync::OnceLock;
 
-use vlem_core::config::SyntheticConfig;
 use vlem_core::{Frame, Tracker};
+use vlem_datasets::SyntheticConfig;
 use vlem_datasets::SyntheticScene;
 use vlem_trackers::frame_to_model::FrameToModelConfig;
 use vlem_trackers::odometry::OdometryConfig;

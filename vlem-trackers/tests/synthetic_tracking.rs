@@ -8,8 +8,8 @@
 )]
 
 use nalgebra::{Isometry3, Translation3, UnitQuaternion, Vector3};
-use vlem_core::config::SyntheticConfig;
 use vlem_core::{Pose, Tracker, TrackingState};
+use vlem_datasets::SyntheticConfig;
 use vlem_datasets::SyntheticScene;
 use vlem_trackers::frame_to_model::{FrameToModelConfig, FrameToModelTracker};
 use vlem_trackers::odometry::{OdometryConfig, Pyramid, register};

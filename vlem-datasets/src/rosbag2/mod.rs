@@ -6,7 +6,7 @@
 //! my_bag/                 a rosbag2 folder: metadata.yaml and my_bag_0.mcap (or .db3), split
 //!                         bags as my_bag_1.mcap, ...; or one .mcap / .db3 file on its own
 //! [dataset.rosbag2]       colour_topic, depth_topic, camera_info_topic, and optionally
-//!                         pose_topic or tf = [parent, child] (see vlem_core::config::Rosbag2Config)
+//!                         pose_topic or tf = [parent, child] (see [`Rosbag2Config`])
 //! ```
 //!
 //! Why it exists: "run it on my rosbag" is what robot users ask of every mapping system first.
@@ -33,7 +33,10 @@
 //! or JPEG/PNG colour; `16UC1` (raw units, `[dataset] depth_scale` per metre, default 1000) or
 //! `32FC1` (metres) depth, also as a 16-bit PNG or image_transport's `compressedDepth` (PNG).
 
+use std::path::Path;
+
 pub mod cdr;
+mod config;
 pub mod messages;
 pub mod poses;
 #[cfg(feature = "rosbag2")]
@@ -43,3 +46,51 @@ pub mod storage;
 
 #[cfg(feature = "rosbag2")]
 pub use reader::{ROS_DEPTH_SCALE, Rosbag2Reader};
+
+#[cfg(feature = "rosbag2")]
+pub(crate) use config::Rosbag2Settings;
+pub use config::{
+    DEFAULT_CAMERA_INFO_TOPIC, DEFAULT_COLOUR_TOPIC, DEFAULT_DEPTH_TOPIC,
+    DEFAULT_MAX_TIME_DIFFERENCE, ROSBAG2, Rosbag2Config,
+};
+
+/// What [`looks_like_bag`] looks for, in the error that lists what `kind = "auto"` tried.
+pub(crate) const LOOKS_FOR: &str = "metadata.yaml or .mcap/.db3 files (ROS 2 bag)";
+
+// Probed before every folder layout: a bag may be one file, and a bag folder has nothing else.
+#[cfg(feature = "rosbag2")]
+vlem_core::register_dataset!(
+    ROSBAG2,
+    "ROS 2 bags (rosbag2 folder, or one .mcap / .db3 file); topics in [dataset.rosbag2]",
+    vlem_core::DatasetReader::new(open_boxed)
+        .detected_by(0, LOOKS_FOR, looks_like_bag)
+        .with_settings_check(|config| {
+            crate::sequence::check_settings::<Rosbag2Settings>(ROSBAG2, config)
+        })
+);
+
+vlem_core::feature_hint!(Dataset, ROSBAG2, "rosbag2");
+
+#[cfg(feature = "rosbag2")]
+fn open_boxed(
+    config: &vlem_core::config::DatasetConfig,
+    path: &Path,
+) -> vlem_core::Result<Box<dyn vlem_core::FrameSource>> {
+    Ok(Box::new(Rosbag2Reader::open(path, config)?))
+}
+
+/// Whether `path` looks like a ROS 2 bag: a `.mcap` or `.db3` file, or a folder with
+/// `metadata.yaml` or such a file. In every build, so that a build without the reader recognises a
+/// bag and says which feature reads it.
+pub fn looks_like_bag(path: &Path) -> bool {
+    let is_storage = |p: &Path| p.extension().is_some_and(|e| e == "mcap" || e == "db3");
+    if path.is_file() {
+        return is_storage(path);
+    }
+    path.join("metadata.yaml").is_file()
+        || std::fs::read_dir(path)
+            .into_iter()
+            .flatten()
+            .flatten()
+            .any(|e| is_storage(&e.path()))
+}

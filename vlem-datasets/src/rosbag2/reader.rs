@@ -3,13 +3,13 @@
 
 use std::path::{Path, PathBuf};
 
-use vlem_core::config::{DatasetConfig, Rosbag2Config};
+use vlem_core::config::DatasetConfig;
 use vlem_core::{Frame, FrameSource, Intrinsics, Pose};
 
 use crate::colour_from_bytes;
 use crate::depth_check::check_depth_scale;
 use crate::error::{DatasetError, Result};
-use crate::sequence::{Selection, depth_scale};
+use crate::sequence::{Selection, depth_scale, reader_settings};
 use crate::tum::{associate, pose_at};
 
 use super::messages::{
@@ -18,6 +18,7 @@ use super::messages::{
 };
 use super::poses::TfTree;
 use super::storage::{Bag, MessageKey, TopicInfo};
+use super::{ROSBAG2, Rosbag2Config, Rosbag2Settings};
 
 /// Raw depth units per metre of a `16UC1` depth image unless `[dataset] depth_scale` says
 /// otherwise: millimetres, as RealSense, Orbbec, Azure Kinect and OpenNI drivers publish.
@@ -134,7 +135,11 @@ impl Rosbag2Reader {
     /// a pose for any frame; [`DatasetError::BadConfig`] for impossible settings;
     /// [`DatasetError::Empty`] when no colour and depth image pair up.
     pub fn open(path: &Path, config: &DatasetConfig) -> Result<Self> {
-        let mut settings = config.rosbag2.clone().unwrap_or_default();
+        let Rosbag2Settings {
+            intrinsics,
+            trajectory,
+            rosbag2: mut settings,
+        } = reader_settings(ROSBAG2, config)?;
         let bad_config = |message: String| DatasetError::BadConfig {
             path: path.to_path_buf(),
             message,
@@ -158,7 +163,7 @@ impl Rosbag2Reader {
                     .to_owned(),
             ));
         }
-        if config.trajectory.is_some() {
+        if trajectory.is_some() {
             return Err(bad_config(
                 "trajectory does not apply to a bag; poses come from rosbag2.pose_topic or \
                  rosbag2.tf"
@@ -168,7 +173,7 @@ impl Rosbag2Reader {
         let selection = Selection::from_config(config, path)?;
         let scale = depth_scale(config, ROS_DEPTH_SCALE, path)?;
         let mut bag = Bag::open(path)?;
-        let use_camera_info = config.intrinsics.is_none();
+        let use_camera_info = intrinsics.is_none();
         let mut scan = scan(&mut bag, &settings, use_camera_info)?;
         // From here on the topics are where the images were found.
         settings.colour_topic = std::mem::take(&mut scan.colour_topic);
@@ -184,7 +189,7 @@ impl Rosbag2Reader {
                 });
             }
         };
-        let (intrinsics, intrinsics_origin) = match &config.intrinsics {
+        let (intrinsics, intrinsics_origin) = match &intrinsics {
             Some(file) => {
                 let dir = if path.is_dir() {
                     path

@@ -29,13 +29,15 @@
 //! every machine and thread count (the randomness is a local SplitMix64, not a crate's generator).
 
 use nalgebra::{Point3, Vector3};
-use vlem_core::config::{DatasetConfig, SyntheticConfig};
+use vlem_core::config::DatasetConfig;
 use vlem_core::{
-    DepthImage, Frame, FrameSource, Intrinsics, LabelImage, LabelNames, Pose, RgbImage,
+    DatasetReader, DepthImage, Frame, FrameSource, Intrinsics, LabelImage, LabelNames, Pose,
+    RgbImage,
 };
 
 use crate::error::{DatasetError, Result};
 
+mod config;
 mod disk;
 mod geometry;
 mod layout;
@@ -45,9 +47,30 @@ mod rng;
 mod surface;
 mod texture;
 
+pub use config::{SyntheticConfig, SyntheticNoise};
 pub use disk::write_to_disk;
 pub use layout::SYNTHETIC_LABELS;
 pub use motion::look_along;
+
+/// The registered name: `[dataset] kind = "synthetic"`.
+pub const SYNTHETIC: &str = "synthetic";
+
+vlem_core::register_dataset!(
+    SYNTHETIC,
+    "a procedural labelled room rendered on demand, no folder; settings in [dataset.synthetic]",
+    DatasetReader::new(open_boxed)
+        .without_path()
+        .with_settings_check(|config| {
+            crate::sequence::check_settings::<config::SyntheticSettings>(SYNTHETIC, config)
+        })
+);
+
+fn open_boxed(
+    config: &DatasetConfig,
+    _path: &std::path::Path,
+) -> vlem_core::Result<Box<dyn FrameSource>> {
+    Ok(Box::new(SyntheticReader::open(config)?))
+}
 
 /// The frame rate the camera path is designed for: frame `i` has timestamp `i / 30` s.
 pub const SYNTHETIC_FRAME_RATE: f64 = 30.0;
@@ -406,9 +429,12 @@ impl SyntheticReader {
     /// `[dataset.synthetic]` (defaults when absent). No folder is involved; `path` is ignored.
     ///
     /// # Errors
-    /// The errors of [`SyntheticScene::new`], and [`DatasetError::Synthetic`] for `stride` or
-    /// `max_frames` 0 and for `depth_scale`, `intrinsics` or `trajectory`, which do not apply.
+    /// The errors of [`SyntheticScene::new`], [`DatasetError::Synthetic`] for `stride` or
+    /// `max_frames` 0 and for `depth_scale`, which does not apply, and
+    /// [`DatasetError::InvalidSettings`] for another reader's keys (`intrinsics`, `trajectory`, …).
     pub fn open(config: &DatasetConfig) -> Result<Self> {
+        let settings: config::SyntheticSettings =
+            crate::sequence::reader_settings(SYNTHETIC, config)?;
         let refuse = |key: &str| {
             Err(DatasetError::Synthetic {
                 message: format!(
@@ -419,12 +445,6 @@ impl SyntheticReader {
         };
         if config.depth_scale.is_some() {
             return refuse("depth_scale");
-        }
-        if config.intrinsics.is_some() {
-            return refuse("intrinsics");
-        }
-        if config.trajectory.is_some() {
-            return refuse("trajectory");
         }
         let stride = config.stride.unwrap_or(1);
         if stride == 0 {
@@ -439,7 +459,7 @@ impl SyntheticReader {
                     .to_owned(),
             });
         }
-        let scene = SyntheticScene::new(&config.synthetic.clone().unwrap_or_default())?;
+        let scene = SyntheticScene::new(&settings.synthetic)?;
         let len = scene
             .len()
             .div_ceil(stride)

@@ -6,14 +6,13 @@
 
 use nalgebra::{Matrix3, Vector3};
 use rayon::prelude::*;
-use vlem_core::config::SyntheticNoise;
 use vlem_core::{DepthImage, Pose, RgbImage};
 
 use super::geometry::{T_MIN, to_local};
 use super::layout::{CEILING, FLOOR, Layout, Part};
 use super::rng::{gaussian, hash, unit};
 use super::texture::{shade, to_rgb8};
-use super::{SyntheticScene, SyntheticView};
+use super::{SyntheticNoise, SyntheticScene, SyntheticView};
 use crate::error::{DatasetError, Result};
 
 /// What a ray hit.
