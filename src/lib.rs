@@ -7,6 +7,8 @@
 //! vlem = { path = "../vlem", default-features = false, features = ["point-cloud", "colour-names"] }
 //! ```
 //!
+//! `tests/library-user/` is such a program, outside the workspace; CI builds and runs it.
+//!
 //! ```no_run
 //! use vlem::prelude::*;
 //!
