@@ -1,7 +1,7 @@
 //! Rerun recordings of runs and queries (cargo feature `rerun`).
 //!
 //! A run logs, on the `frame` timeline: the camera (pose and pinhole), its colour and depth images,
-//! the region proposer's segments, the trajectory so far, the embedding map's points every few
+//! the region proposer's regions, the trajectory so far, the embedding map's points every few
 //! integrated frames, and at the end the whole map and the tracker's dense colour model. A query
 //! logs, on the `query` timeline and under an entity of its own, the heatmap (jet colours, as in
 //! the paper's figures), the selected point sets and the grasp. docs/usage.md lists every entity;
@@ -233,9 +233,9 @@ fn pose_transform(pose: &Pose) -> rerun::Transform3D {
     )
 }
 
-/// One id per pixel: 0 for no segment, else 1 + the region's index; smaller regions are drawn
-/// last so they win on overlap, as in the encoders' segment layout.
-fn segment_ids(width: u32, height: u32, regions: &[Region]) -> Vec<u16> {
+/// One id per pixel: 0 for no region, else 1 + the region's index; smaller regions are drawn
+/// last so they win on overlap, as in the encoders' region layout.
+fn region_ids(width: u32, height: u32, regions: &[Region]) -> Vec<u16> {
     let mut ids = vec![0u16; width as usize * height as usize];
     let mut order: Vec<usize> = (0..regions.len()).collect();
     order.sort_by_key(|&k| std::cmp::Reverse(regions[k].area()));
@@ -332,7 +332,7 @@ impl Recorder {
         self.set_frame_time(frame);
         if !regions.is_empty() {
             let (w, h) = (frame.colour.width(), frame.colour.height());
-            let ids = segment_ids(w, h, regions);
+            let ids = region_ids(w, h, regions);
             let bytes: Vec<u8> = ids.iter().flat_map(|id| id.to_le_bytes()).collect();
             s.log(
                 "world/camera/image/segments",

@@ -24,10 +24,10 @@ What vlem asks of an encoder class:
   proposer's regions;
 - ``encode_image(rgb, regions)``: ``rgb`` is a ``uint8[h, w, 3]`` array, ``regions`` a list of
   regions (each with ``bbox = (x, y, width, height)`` and ``mask = bool[height, width]``; empty
-  unless ``needs_regions``); returns either a segment layout ``{"index": int[h, w], "table":
+  unless ``needs_regions``); returns either a region layout ``{"index": int[h, w], "table":
   float32[segments, dim]}`` (the segment of each pixel, ``-1`` for none, and one embedding row per
   segment) or a patch grid ``{"grid": float32[gh, gw, dim]}`` covering the whole image
-  (``vlem.Segments`` and ``vlem.PatchGrid`` are the same with attributes);
+  (``vlem.Regions`` and ``vlem.PatchGrid`` are the same with attributes);
 - ``encode_text(text)`` (optional): a ``float32[dim]`` embedding of a query text.
 
 A PyTorch model plugs in the same way: build it in ``__init__`` (on any device, ``cuda`` included),

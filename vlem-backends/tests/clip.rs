@@ -7,7 +7,7 @@
 //! The CLIP towers and the `clip` encoder on the two tiny random-weight models committed in
 //! `goldens/clip/` (Hugging Face layout, written by `goldens/clip/make_clip_goldens.py` with
 //! `transformers`): token ids, image and text features against `transformers` to 1e-4, the
-//! encoder's segment layout, templates, parameters and errors, and the shared conformance suite.
+//! encoder's region layout, templates, parameters and errors, and the shared conformance suite.
 //! Run in release (`cargo test --release`): candle in a debug build is many times slower.
 #![cfg(feature = "clip")]
 
@@ -19,7 +19,7 @@ use std::sync::OnceLock;
 use serde::Deserialize;
 use vlem_backends::clip::model::Activation;
 use vlem_backends::clip::{ClipEncoder, ClipEncoderConfig, ClipModel};
-use vlem_backends::segment_crops::{self, Background, CLIP_MEAN, CLIP_STD};
+use vlem_backends::region_crops::{self, Background, CLIP_MEAN, CLIP_STD};
 use vlem_core::{BuildContext, Encoder, PixelRect, Region, Registry, RgbImage, StageConfig};
 
 /// The goldens written by `goldens/clip/make_clip_goldens.py`.
@@ -329,7 +329,7 @@ fn regions_get_their_crop_embedding_and_the_smaller_region_wins() {
     assert_eq!((e.width(), e.height(), e.dim()), (40, 30, 16));
 
     // Expected rows: the crops through the model, normalised.
-    let pixels = segment_crops::crop_batch(&image, &regions, enc.crop_spec()).unwrap();
+    let pixels = region_crops::crop_batch(&image, &regions, enc.crop_spec()).unwrap();
     let raw = enc.model().image_features(&pixels, 2).unwrap();
     let (big, small) = (normalised(&raw[0]), normalised(&raw[1]));
     assert!(max_abs_diff(&big, &small) > 1e-3, "two crops embed alike");
@@ -357,7 +357,7 @@ fn batch_size_does_not_change_the_embeddings() {
             "tiny-quick-gelu",
             &format!("batch_size = 2\nbackground = \"{background}\"\nseed = 7"),
         );
-        let pixels = segment_crops::crop_batch(&image, &regions, one.crop_spec()).unwrap();
+        let pixels = region_crops::crop_batch(&image, &regions, one.crop_spec()).unwrap();
         let a = one.embed_crops(&pixels, regions.len()).unwrap();
         let b = many.embed_crops(&pixels, regions.len()).unwrap();
         assert_eq!(a.len(), 5 * 16);

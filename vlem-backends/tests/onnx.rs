@@ -285,11 +285,11 @@ fn global_encoding_of_a_whole_frame_region_is_the_normalised_torch_embedding() {
             .unwrap();
         let expected = unit(&g.global.output.alone[i]);
         assert_close(
-            e.segment_row(20, 20).unwrap(),
+            e.region_row(20, 20).unwrap(),
             &expected,
             "whole-frame region",
         );
-        let small = e.segment_row(3, 3).unwrap();
+        let small = e.region_row(3, 3).unwrap();
         assert!(
             max_abs_diff(small, &expected) > 1e-3,
             "the corner region got the whole frame's embedding"
@@ -313,8 +313,8 @@ fn global_batches_of_any_size_give_the_same_embeddings() {
     );
     for (u, v) in [(2, 2), (10, 10), (20, 20)] {
         assert_close(
-            a.segment_row(u, v).unwrap(),
-            b.segment_row(u, v).unwrap(),
+            a.region_row(u, v).unwrap(),
+            b.region_row(u, v).unwrap(),
             "batch 1 against batch 16",
         );
     }

@@ -2,8 +2,8 @@
 //!
 //! A dense 640x480x512 f32 tensor is 600 MB per frame, so no encoder produces one. Encoders hand back
 //! embeddings in the layout they compute them in:
-//! - [`EmbeddingLayout::Segments`]: a per-pixel segment index and a table of one unit-norm embedding
-//!   per segment (region encoders such as CLIP on SAM masks). Pixels in no segment have no embedding.
+//! - [`EmbeddingLayout::Regions`]: a per-pixel region index and a table of one unit-norm embedding
+//!   per region (region encoders such as CLIP on SAM masks). Pixels in no region have no embedding.
 //! - [`EmbeddingLayout::PatchGrid`]: a low-resolution grid of patch embeddings (ViT patch encoders),
 //!   bilinearly upsampled and L2-normalised only at the pixels that are looked up.
 //!
@@ -11,17 +11,17 @@
 
 use crate::error::{CoreError, Result};
 
-/// Marks a pixel that belongs to no segment.
-pub const NO_SEGMENT: u32 = u32::MAX;
+/// Marks a pixel that belongs to no region.
+pub const NO_REGION: u32 = u32::MAX;
 
 /// How the embeddings of a frame are stored.
 #[derive(Clone, Debug, PartialEq)]
 pub enum EmbeddingLayout {
-    /// One segment index per pixel (row-major, [`NO_SEGMENT`] for none) and a `segments x dim` table.
-    Segments {
-        /// Per-pixel segment index.
+    /// One region index per pixel (row-major, [`NO_REGION`] for none) and a `regions x dim` table.
+    Regions {
+        /// Per-pixel region index.
         index: Vec<u32>,
-        /// Row-major table, one unit-norm row per segment.
+        /// Row-major table, one unit-norm row per region.
         table: Vec<f32>,
     },
     /// A `grid_width x grid_height` grid of patch embeddings covering the whole image.
@@ -45,12 +45,12 @@ pub struct PixelEmbeddings {
 }
 
 impl PixelEmbeddings {
-    /// Segment layout. Table rows are L2-normalised here; a zero row is an error.
+    /// Region layout. Table rows are L2-normalised here; a zero row is an error.
     ///
     /// # Errors
     /// [`CoreError::InvalidEmbeddings`] for inconsistent lengths, out-of-range indices, zero or
     /// non-finite rows.
-    pub fn from_segments(
+    pub fn from_regions(
         width: u32,
         height: u32,
         dim: usize,
@@ -63,29 +63,29 @@ impl PixelEmbeddings {
         }
         if index.len() != width as usize * height as usize {
             return fail(format!(
-                "segment index has {} entries for a {width}x{height} image",
+                "region index has {} entries for a {width}x{height} image",
                 index.len()
             ));
         }
         if !table.len().is_multiple_of(dim) {
             return fail(format!(
-                "segment table length {} is not a multiple of dim {dim}",
+                "region table length {} is not a multiple of dim {dim}",
                 table.len()
             ));
         }
-        let segments = table.len() / dim;
+        let regions = table.len() / dim;
         if let Some(bad) = index
             .iter()
-            .find(|&&s| s != NO_SEGMENT && s as usize >= segments)
+            .find(|&&s| s != NO_REGION && s as usize >= regions)
         {
             return fail(format!(
-                "segment index {bad} but the table has {segments} rows"
+                "region index {bad} but the table has {regions} rows"
             ));
         }
         for (row_index, row) in table.chunks_exact_mut(dim).enumerate() {
             if !normalise(row) {
                 return fail(format!(
-                    "segment {row_index} has a zero or non-finite embedding"
+                    "region {row_index} has a zero or non-finite embedding"
                 ));
             }
         }
@@ -93,7 +93,7 @@ impl PixelEmbeddings {
             width,
             height,
             dim,
-            layout: EmbeddingLayout::Segments { index, table },
+            layout: EmbeddingLayout::Regions { index, table },
         })
     }
 
@@ -160,7 +160,7 @@ impl PixelEmbeddings {
     /// Bytes held by this value (for memory reports).
     pub fn memory_bytes(&self) -> usize {
         match &self.layout {
-            EmbeddingLayout::Segments { index, table } => index.len() * 4 + table.len() * 4,
+            EmbeddingLayout::Regions { index, table } => index.len() * 4 + table.len() * 4,
             EmbeddingLayout::PatchGrid { data, .. } => data.len() * 4,
         }
     }
@@ -171,42 +171,40 @@ impl PixelEmbeddings {
             return false;
         }
         match &self.layout {
-            EmbeddingLayout::Segments { index, .. } => {
-                index[v as usize * self.width as usize + u as usize] != NO_SEGMENT
+            EmbeddingLayout::Regions { index, .. } => {
+                index[v as usize * self.width as usize + u as usize] != NO_REGION
             }
             EmbeddingLayout::PatchGrid { .. } => true,
         }
     }
 
-    /// The stored unit-norm row of pixel `(u, v)` in the segment layout, without copying.
-    /// `None` in the patch layout, for pixels in no segment, and outside the image.
+    /// The stored unit-norm row of pixel `(u, v)` in the region layout, without copying.
+    /// `None` in the patch layout, for pixels in no region, and outside the image.
     #[inline]
-    pub fn segment_row(&self, u: u32, v: u32) -> Option<&[f32]> {
+    pub fn region_row(&self, u: u32, v: u32) -> Option<&[f32]> {
         if u >= self.width || v >= self.height {
             return None;
         }
         match &self.layout {
-            EmbeddingLayout::Segments { index, table } => {
+            EmbeddingLayout::Regions { index, table } => {
                 let s = index[v as usize * self.width as usize + u as usize];
-                (s != NO_SEGMENT)
-                    .then(|| &table[s as usize * self.dim..(s as usize + 1) * self.dim])
+                (s != NO_REGION).then(|| &table[s as usize * self.dim..(s as usize + 1) * self.dim])
             }
             EmbeddingLayout::PatchGrid { .. } => None,
         }
     }
 
-    /// [`PixelEmbeddings::segment_row`] by the linear pixel index `v * width + u`, for loops
+    /// [`PixelEmbeddings::region_row`] by the linear pixel index `v * width + u`, for loops
     /// that already hold it (no division per pixel).
     #[inline]
-    pub fn segment_row_at_index(&self, index: usize) -> Option<&[f32]> {
+    pub fn region_row_at_index(&self, index: usize) -> Option<&[f32]> {
         match &self.layout {
-            EmbeddingLayout::Segments {
-                index: segments,
+            EmbeddingLayout::Regions {
+                index: regions,
                 table,
             } => {
-                let s = *segments.get(index)?;
-                (s != NO_SEGMENT)
-                    .then(|| &table[s as usize * self.dim..(s as usize + 1) * self.dim])
+                let s = *regions.get(index)?;
+                (s != NO_REGION).then(|| &table[s as usize * self.dim..(s as usize + 1) * self.dim])
             }
             EmbeddingLayout::PatchGrid { .. } => None,
         }
@@ -222,7 +220,7 @@ impl PixelEmbeddings {
             return false;
         }
         match &self.layout {
-            EmbeddingLayout::Segments { .. } => match self.segment_row(u, v) {
+            EmbeddingLayout::Regions { .. } => match self.region_row(u, v) {
                 Some(row) => {
                     out.copy_from_slice(row);
                     true
@@ -407,7 +405,7 @@ impl<'a> PatchSampler<'a> {
 }
 
 impl PixelEmbeddings {
-    /// The patch sampler of a patch-grid layout (`None` for segments).
+    /// The patch sampler of a patch-grid layout (`None` for regions).
     pub fn patch_sampler(&self) -> Option<PatchSampler<'_>> {
         PatchSampler::new(self)
     }
@@ -460,14 +458,14 @@ mod tests {
             }
         }
         assert!(sampler.weights(37, 0).is_none());
-        let segments = PixelEmbeddings::from_segments(1, 1, 1, vec![0], vec![1.0]).unwrap();
-        assert!(segments.patch_sampler().is_none());
+        let regions = PixelEmbeddings::from_regions(1, 1, 1, vec![0], vec![1.0]).unwrap();
+        assert!(regions.patch_sampler().is_none());
     }
 
     #[test]
-    fn segments_look_up_normalised_rows_and_skip_unsegmented_pixels() {
-        let index = vec![0, 1, NO_SEGMENT, 1];
-        let e = PixelEmbeddings::from_segments(2, 2, 2, index, vec![3.0, 4.0, 0.0, 2.0]).unwrap();
+    fn regions_look_up_normalised_rows_and_skip_pixels_in_no_region() {
+        let index = vec![0, 1, NO_REGION, 1];
+        let e = PixelEmbeddings::from_regions(2, 2, 2, index, vec![3.0, 4.0, 0.0, 2.0]).unwrap();
         let mut out = [0.0; 2];
         assert!(e.embedding_at(0, 0, &mut out));
         assert_eq!(out, [0.6, 0.8]);
@@ -475,20 +473,20 @@ mod tests {
         assert_eq!(out, [0.0, 1.0]);
         assert!(!e.embedding_at(0, 1, &mut out));
         assert!(!e.has_embedding(0, 1));
-        assert_eq!(e.segment_row(1, 0), Some(&[0.0, 1.0][..]));
+        assert_eq!(e.region_row(1, 0), Some(&[0.0, 1.0][..]));
     }
 
     #[test]
-    fn segments_reject_bad_tables() {
-        let err = PixelEmbeddings::from_segments(2, 1, 2, vec![0, 2], vec![1.0, 0.0]).unwrap_err();
+    fn region_tables_are_checked() {
+        let err = PixelEmbeddings::from_regions(2, 1, 2, vec![0, 2], vec![1.0, 0.0]).unwrap_err();
         assert!(
             err.to_string()
-                .contains("segment index 2 but the table has 1 rows"),
+                .contains("region index 2 but the table has 1 rows"),
             "{err}"
         );
-        let err = PixelEmbeddings::from_segments(2, 1, 2, vec![0, 0], vec![0.0, 0.0]).unwrap_err();
+        let err = PixelEmbeddings::from_regions(2, 1, 2, vec![0, 0], vec![0.0, 0.0]).unwrap_err();
         assert!(err.to_string().contains("zero or non-finite"), "{err}");
-        let err = PixelEmbeddings::from_segments(3, 1, 2, vec![0, 0], vec![1.0, 0.0]).unwrap_err();
+        let err = PixelEmbeddings::from_regions(3, 1, 2, vec![0, 0], vec![1.0, 0.0]).unwrap_err();
         assert!(
             err.to_string().contains("2 entries for a 3x1 image"),
             "{err}"

@@ -19,7 +19,7 @@ mod traits;
 pub mod types;
 
 pub use config::{Config, StageConfig};
-pub use embeddings::{EmbeddingLayout, NO_SEGMENT, PixelEmbeddings};
+pub use embeddings::{EmbeddingLayout, NO_REGION, PixelEmbeddings};
 pub use error::{CoreError, Result, message_chain};
 pub use mapfile::{MapMetadata, MapSnapshot, read_map_file, write_map_file};
 pub use registry::{

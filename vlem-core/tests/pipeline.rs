@@ -116,7 +116,7 @@ impl Encoder for Fake {
         *calls += 1;
         std::thread::sleep(self.delay);
         let n = (image.width() * image.height()) as usize;
-        PixelEmbeddings::from_segments(image.width(), image.height(), 2, vec![0; n], vec![1.0, 0.0])
+        PixelEmbeddings::from_regions(image.width(), image.height(), 2, vec![0; n], vec![1.0, 0.0])
     }
 }
 

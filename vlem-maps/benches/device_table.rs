@@ -1,5 +1,5 @@
 //! Benchmark of the maps' device table (`[map] device`) beside the host table, on the same rows:
-//! fusing one 640×480 frame's segment embeddings into a map, appending a frame's new rows, and a
+//! fusing one 640×480 frame's region embeddings into a map, appending a frame's new rows, and a
 //! text query of one and of eight texts (bench binary, not a test).
 //!
 //! `cargo bench -p vlem-maps --features candle --bench device_table` runs on candle's CPU device;
@@ -89,7 +89,7 @@ fn main() {
         .collect();
     let segment_table = unit_rows(&mut rng, SEGMENTS);
     let embeddings =
-        PixelEmbeddings::from_segments(w, h, DIM, index.clone(), segment_table.clone()).unwrap();
+        PixelEmbeddings::from_regions(w, h, DIM, index.clone(), segment_table.clone()).unwrap();
     let mut map_rows: Vec<u32> = (0..points as u32).collect();
     map_rows.shuffle(&mut rng);
     map_rows.truncate(fused);

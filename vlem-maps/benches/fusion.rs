@@ -69,7 +69,7 @@ fn main() {
     // 11-d: the colour-names encoder; 512-d: CLIP ViT-B/16.
     for dim in env_list("VLEM_BENCH_DIMS", &[11, DIM]) {
         let embeddings =
-            segment_embeddings(&mut rng, frame1.colour.width(), frame1.colour.height(), dim);
+            region_embeddings(&mut rng, frame1.colour.width(), frame1.colour.height(), dim);
         for n in env_list("VLEM_BENCH_POINTS", &[100_000, 1_000_000]) {
             let snapshot = map_on_surface(&mut rng, &surface, n, dim);
             let associations = match std::env::var("VLEM_BENCH_ASSOCIATION").as_deref() {
@@ -322,14 +322,14 @@ fn fresh_write_ms(values: usize) -> f64 {
 }
 
 /// 300 segments (32x32-pixel blocks) with random unit 512-d embeddings, like SAM + CLIP output.
-fn segment_embeddings(rng: &mut StdRng, w: u32, h: u32, dim: usize) -> PixelEmbeddings {
+fn region_embeddings(rng: &mut StdRng, w: u32, h: u32, dim: usize) -> PixelEmbeddings {
     let blocks_x = w.div_ceil(32);
     let index = (0..w * h)
         .map(|i| (i % w) / 32 + (i / w) / 32 * blocks_x)
         .collect();
     let segments = (blocks_x * h.div_ceil(32)) as usize;
     let table = random_unit_rows(rng, segments, dim);
-    PixelEmbeddings::from_segments(w, h, dim, index, table).unwrap()
+    PixelEmbeddings::from_regions(w, h, dim, index, table).unwrap()
 }
 
 fn random_unit_rows(rng: &mut StdRng, n: usize, dim: usize) -> Vec<f32> {

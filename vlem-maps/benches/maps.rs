@@ -126,5 +126,5 @@ fn block_embeddings(w: u32, h: u32) -> PixelEmbeddings {
     let table = (0..segments * DIM)
         .map(|_| rng.random_range(-1.0f32..1.0))
         .collect();
-    PixelEmbeddings::from_segments(w, h, DIM, index, table).unwrap()
+    PixelEmbeddings::from_regions(w, h, DIM, index, table).unwrap()
 }

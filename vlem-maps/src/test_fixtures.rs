@@ -34,7 +34,7 @@ pub fn plane(depth: f32) -> Frame {
 
 /// Embedding `e` for every pixel (one segment).
 pub fn uniform(e: [f32; DIM]) -> PixelEmbeddings {
-    PixelEmbeddings::from_segments(W, H, DIM, vec![0; (W * H) as usize], e.to_vec()).unwrap()
+    PixelEmbeddings::from_regions(W, H, DIM, vec![0; (W * H) as usize], e.to_vec()).unwrap()
 }
 
 /// Integrates frame `f` seen from `pose` with embeddings `e`.

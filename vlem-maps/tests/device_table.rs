@@ -2,7 +2,7 @@
 //! candle's CPU device (or the GPU that `VLEM_TEST_DEVICE=cuda` names, in a build with `cuda`):
 //! the map contract, and the same sequence as the host table giving the same
 //! points and, within rounding, the same rows and query ranking — through fusion, insertion and
-//! the budget's merges, from segment tables and from patch grids, in both precisions.
+//! the budget's merges, from region tables and from patch grids, in both precisions.
 #![cfg(all(feature = "point-cloud", feature = "voxel", feature = "candle"))]
 #![allow(
     clippy::unwrap_used,

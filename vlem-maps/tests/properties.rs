@@ -113,8 +113,8 @@ fn plane(embeddings: EmbeddingSpec) -> FrameSpec {
 }
 
 fn two_segments() -> EmbeddingSpec {
-    EmbeddingSpec::Segments {
-        segments: 2,
+    EmbeddingSpec::Regions {
+        regions: 2,
         block: 4,
         seed: 1,
         unlabelled_every: 0,
@@ -225,8 +225,8 @@ fn voxel_memory_report_counts_the_index_after_evictions() {
                 -2.653_716_075_563_706_6,
             ],
             rotation: [0.0, -2.622_945_475_579_082_4, 0.0],
-            embeddings: EmbeddingSpec::Segments {
-                segments: 1,
+            embeddings: EmbeddingSpec::Regions {
+                regions: 1,
                 block: 1,
                 seed: 0,
                 unlabelled_every: 0,

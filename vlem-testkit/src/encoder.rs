@@ -77,7 +77,7 @@ const SAMPLES_PER_AXIS: u32 = 16;
 ///         // One segment per pixel; +1 keeps black pixels away from the zero vector.
 ///         let table = image.as_raw().iter().map(|&c| f32::from(c) + 1.0).collect();
 ///         let index = (0..image.width() * image.height()).collect();
-///         PixelEmbeddings::from_segments(image.width(), image.height(), 3, index, table)
+///         PixelEmbeddings::from_regions(image.width(), image.height(), 3, index, table)
 ///     }
 /// }
 ///

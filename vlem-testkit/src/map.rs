@@ -12,7 +12,7 @@
 
 use nalgebra::{Translation3, UnitQuaternion, Vector3};
 use vlem_core::{
-    DepthImage, EmbeddingMap, Frame, Intrinsics, NO_SEGMENT, Observation, PixelEmbeddings, Pose,
+    DepthImage, EmbeddingMap, Frame, Intrinsics, NO_REGION, Observation, PixelEmbeddings, Pose,
     RgbImage,
 };
 
@@ -42,7 +42,7 @@ pub fn half_segments(frame: &Frame, k: usize) -> PixelEmbeddings {
     let index = (0..w * h)
         .map(|i| {
             if i / w == h - 1 {
-                NO_SEGMENT
+                NO_REGION
             } else if i % w < w / 2 {
                 0
             } else {
@@ -53,7 +53,7 @@ pub fn half_segments(frame: &Frame, k: usize) -> PixelEmbeddings {
     let mut table = vec![0.0; 2 * DIM];
     table[k % DIM] = 1.0;
     table[DIM + (k + 1) % DIM] = 1.0;
-    PixelEmbeddings::from_segments(w, h, DIM, index, table).unwrap_or_else(|e| unreachable(e))
+    PixelEmbeddings::from_regions(w, h, DIM, index, table).unwrap_or_else(|e| unreachable(e))
 }
 
 /// A pose translated by `(x, y, z)` and rotated by `yaw` radians about the camera's y axis.
@@ -328,7 +328,7 @@ pub fn check_query_and_dimensions(build: MapFactory) {
         map.similarity(&[1.0; 3], &mut scores).is_err(),
         "wrong query dimension accepted"
     );
-    let wrong = PixelEmbeddings::from_segments(64, 48, 3, vec![0; 64 * 48], vec![1.0, 0.0, 0.0])
+    let wrong = PixelEmbeddings::from_regions(64, 48, 3, vec![0; 64 * 48], vec![1.0, 0.0, 0.0])
         .unwrap_or_else(|e| unreachable(e));
     let err = map.integrate(&Observation {
         frame: &frame,

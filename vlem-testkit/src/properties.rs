@@ -5,7 +5,7 @@
 //! tiny frames (8x6 to 24x18 pixels) with random poses (rotations of any angle, translations up to
 //! 100 km), depth holding NaN, ±infinity, zero, negative, tiny and out-of-range values, frames
 //! without any valid depth, frames entirely beyond the maps' range, frames integrated several times
-//! in a row, embeddings in the segment layout (pixels without a segment, identical rows) and in the
+//! in a row, embeddings in the region layout (pixels in no region, identical rows) and in the
 //! patch-grid layout (zero patches, patches that cancel out, values too large to normalise in
 //! `f32`), geometry-only maps (dimension 0), and budgets from 1 element up.
 //!
@@ -50,7 +50,7 @@ use proptest::test_runner::{Config, RngSeed, TestCaseError, TestRunner};
 use rand::rngs::StdRng;
 use rand::{Rng, SeedableRng};
 use vlem_core::{
-    CoreError, DepthImage, EmbeddingMap, Frame, Intrinsics, MapSnapshot, NO_SEGMENT, Observation,
+    CoreError, DepthImage, EmbeddingMap, Frame, Intrinsics, MapSnapshot, NO_REGION, Observation,
     PixelEmbeddings, Pose,
 };
 
@@ -124,17 +124,17 @@ impl Invalid {
 /// The embeddings of a frame.
 #[derive(Clone, Debug, PartialEq)]
 pub enum EmbeddingSpec {
-    /// Segment layout: `segments` rows; pixels labelled by `block`x`block` tiles hashed with `seed`.
-    Segments {
+    /// Region layout: `regions` rows; pixels labelled by `block`x`block` tiles hashed with `seed`.
+    Regions {
         /// Rows of the table (1 or more).
-        segments: u32,
+        regions: u32,
         /// Tile size of the labels, pixels.
         block: u32,
         /// Generator seed for labels and rows.
         seed: u64,
-        /// Every n-th pixel has no segment (0: none, 1: no pixel has an embedding).
+        /// Every n-th pixel is in no region (0: none, 1: no pixel has an embedding).
         unlabelled_every: u32,
-        /// All rows equal (neighbouring segments with bit-identical embeddings).
+        /// All rows equal (neighbouring regions with bit-identical embeddings).
         identical_rows: bool,
     },
     /// Patch-grid layout, values uniform in `[-scale, scale]`.
@@ -260,28 +260,28 @@ impl FrameSpec {
         }
         let (w, h) = (self.width, self.height);
         Some(match &self.embeddings {
-            EmbeddingSpec::Segments {
-                segments,
+            EmbeddingSpec::Regions {
+                regions,
                 block,
                 seed,
                 unlabelled_every,
                 identical_rows,
             } => {
-                let segments = (*segments).max(1);
+                let regions = (*regions).max(1);
                 let block = (*block).max(1);
                 let index = (0..w * h)
                     .map(|i| {
                         let (u, v) = (i % w, i / w);
                         if *unlabelled_every > 0 && i % unlabelled_every == 0 {
-                            return NO_SEGMENT;
+                            return NO_REGION;
                         }
                         let tile = u64::from(u / block) * 7919 + u64::from(v / block) * 104_729;
-                        (splitmix(seed ^ tile) % u64::from(segments)) as u32
+                        (splitmix(seed ^ tile) % u64::from(regions)) as u32
                     })
                     .collect();
                 let mut rng = StdRng::seed_from_u64(*seed);
                 let first = unit_row(&mut rng, dim);
-                let table = (0..segments)
+                let table = (0..regions)
                     .flat_map(|_| {
                         if *identical_rows {
                             first.clone()
@@ -291,8 +291,8 @@ impl FrameSpec {
                     })
                     .collect();
                 fixture(
-                    PixelEmbeddings::from_segments(w, h, dim, index, table),
-                    "segment embeddings",
+                    PixelEmbeddings::from_regions(w, h, dim, index, table),
+                    "region embeddings",
                 )
             }
             EmbeddingSpec::PatchGrid {
@@ -415,8 +415,8 @@ fn rotation_strategy() -> impl Strategy<Value = [f64; 3]> {
 fn embedding_strategy() -> impl Strategy<Value = EmbeddingSpec> {
     prop_oneof![
         3 => (1u32..=6, 1u32..=8, any::<u64>(), prop_oneof![4 => Just(0u32), 2 => 2u32..=7, 1 => Just(1u32)], prop::bool::weighted(0.2))
-            .prop_map(|(segments, block, seed, unlabelled_every, identical_rows)| {
-                EmbeddingSpec::Segments { segments, block, seed, unlabelled_every, identical_rows }
+            .prop_map(|(regions, block, seed, unlabelled_every, identical_rows)| {
+                EmbeddingSpec::Regions { regions, block, seed, unlabelled_every, identical_rows }
             }),
         2 => (
             1u32..=4,

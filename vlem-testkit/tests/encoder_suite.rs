@@ -8,7 +8,7 @@
 
 use std::sync::atomic::{AtomicU32, Ordering};
 
-use vlem_core::{CoreError, Encoder, NO_SEGMENT, PixelEmbeddings, Region, Result, RgbImage};
+use vlem_core::{CoreError, Encoder, NO_REGION, PixelEmbeddings, Region, Result, RgbImage};
 use vlem_testkit::encoder::{
     check_dim, check_image_determinism, check_image_embeddings_unit_norm, check_image_shapes,
     check_text,
@@ -62,7 +62,7 @@ impl Encoder for Rgb {
         for v in 0..h {
             for u in 0..w {
                 if self.regions_only && !regions.iter().any(|r| r.contains(u, v)) {
-                    index.push(NO_SEGMENT);
+                    index.push(NO_REGION);
                     continue;
                 }
                 index.push((table.len() / 3) as u32);
@@ -70,7 +70,7 @@ impl Encoder for Rgb {
                 table.extend(c.map(|c| f32::from(c) + 1.0 + drift));
             }
         }
-        PixelEmbeddings::from_segments(w, h, 3, index, table)
+        PixelEmbeddings::from_regions(w, h, 3, index, table)
     }
 
     fn encode_text(&self, text: &str) -> Result<Vec<f32>> {
@@ -168,11 +168,11 @@ fn an_encoder_that_embeds_nothing_is_caught() {
         }
         fn encode_image(&self, image: &RgbImage, _: &[Region]) -> Result<PixelEmbeddings> {
             let n = image.width() as usize * image.height() as usize;
-            PixelEmbeddings::from_segments(
+            PixelEmbeddings::from_regions(
                 image.width(),
                 image.height(),
                 3,
-                vec![NO_SEGMENT; n],
+                vec![NO_REGION; n],
                 Vec::new(),
             )
         }

@@ -20,7 +20,7 @@
 //! 2. **The encoder.** A type implementing [`vlem_core::Encoder`]: `name`, `dim`, `encode_image`
 //!    returning [`PixelEmbeddings`] in the layout the model computes natively (never a dense
 //!    `w x h x dim` tensor), and `encode_text` if it has a text side (the default answers
-//!    [`CoreError::Unsupported`]). Here: [`ColourNamesEncoder`], which uses the segment layout with
+//!    [`CoreError::Unsupported`]). Here: [`ColourNamesEncoder`], which uses the region layout with
 //!    one segment per colour bin.
 //! 3. **Errors.** The crate's own `thiserror` enum ([`ColourNamesError`]) with messages that tell
 //!    the user what to do, converted into [`CoreError`] at the trait boundary:
@@ -106,7 +106,7 @@
 //!             .chunks_exact(3)
 //!             .map(|p| (p.iter().map(|&c| u32::from(c)).sum::<u32>()) / 3)
 //!             .collect();
-//!         PixelEmbeddings::from_segments(image.width(), image.height(), 2, index, table)
+//!         PixelEmbeddings::from_regions(image.width(), image.height(), 2, index, table)
 //!     }
 //! }
 //!
@@ -389,7 +389,7 @@ impl Encoder for ColourNamesEncoder {
             .collect();
 
         // Occupied bins become segments 0, 1, ... in bin order (deterministic).
-        let mut segment_of_bin = vec![vlem_core::NO_SEGMENT; sums.len()];
+        let mut segment_of_bin = vec![vlem_core::NO_REGION; sums.len()];
         let mut table = Vec::new();
         let mut segments = 0u32;
         for (bin, s) in sums.iter().enumerate() {
@@ -407,7 +407,7 @@ impl Encoder for ColourNamesEncoder {
         for i in &mut index {
             *i = segment_of_bin[*i as usize];
         }
-        PixelEmbeddings::from_segments(image.width(), image.height(), DIM, index, table)
+        PixelEmbeddings::from_regions(image.width(), image.height(), DIM, index, table)
     }
 
     /// The average of the one-hot vectors of the colour words in `text`, L2-normalised.

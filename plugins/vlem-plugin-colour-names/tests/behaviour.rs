@@ -9,7 +9,7 @@
 )]
 
 use vlem_core::{
-    BuildContext, CoreError, EmbeddingLayout, Encoder, NO_SEGMENT, PixelEmbeddings, Registry,
+    BuildContext, CoreError, EmbeddingLayout, Encoder, NO_REGION, PixelEmbeddings, Registry,
     RgbImage, StageConfig,
 };
 use vlem_plugin_colour_names::{ColourNamesError, DIM, TERMS};
@@ -43,8 +43,8 @@ fn try_build(params: &str) -> vlem_core::Result<Box<dyn Encoder>> {
 
 fn segments(e: &PixelEmbeddings) -> (&[u32], &[f32]) {
     match e.layout() {
-        EmbeddingLayout::Segments { index, table } => (index, table),
-        EmbeddingLayout::PatchGrid { .. } => panic!("colour-names uses the segment layout"),
+        EmbeddingLayout::Regions { index, table } => (index, table),
+        EmbeddingLayout::PatchGrid { .. } => panic!("colour-names uses the region layout"),
     }
 }
 
@@ -97,7 +97,7 @@ fn every_pixel_has_a_segment_and_every_row_is_unit_norm() {
     let e = build("").encode_image(&image, &[]).unwrap();
     let (index, table) = segments(&e);
     assert_eq!(index.len(), 640 * 480);
-    assert!(index.iter().all(|&s| s != NO_SEGMENT));
+    assert!(index.iter().all(|&s| s != NO_REGION));
     let rows = table.len() / DIM;
     assert!(rows <= 16 * 16 * 16);
     // Every row is used by some pixel: rows are occupied bins only.

@@ -12,7 +12,7 @@ use pyo3::prelude::*;
 use pyo3::types::{PyDict, PyList, PyTuple};
 use serde::Deserialize;
 use vlem_core::{
-    BuildContext, CoreError, Encoder, NO_SEGMENT, PixelEmbeddings, Region, RgbImage, StageKind,
+    BuildContext, CoreError, Encoder, NO_REGION, PixelEmbeddings, Region, RgbImage, StageKind,
 };
 
 /// The registered name.
@@ -320,7 +320,7 @@ impl PythonEncoder {
         Ok((values, shape))
     }
 
-    /// Reads `encode_image`'s result: a segment layout or a patch grid.
+    /// Reads `encode_image`'s result: a region layout or a patch grid.
     fn read_embeddings<'py>(
         &self,
         py: Python<'py>,
@@ -340,9 +340,9 @@ impl PythonEncoder {
                 .map_err(|e| self.raised(py, METHOD, e))
         };
         let layouts = format!(
-            "a segment layout {{\"index\": int[{h}, {w}] (-1: no embedding), \"table\": \
-             float[segments, {d}]}} or a patch grid {{\"grid\": float[grid_h, grid_w, {d}]}} \
-             (vlem.Segments / vlem.PatchGrid)"
+            "a region layout {{\"index\": int[{h}, {w}] (-1: no embedding), \"table\": \
+             float[regions, {d}]}} or a patch grid {{\"grid\": float[grid_h, grid_w, {d}]}} \
+             (vlem.Regions / vlem.PatchGrid)"
         );
         if let Some(grid) = field("grid")? {
             let spec = ArraySpec {
@@ -370,7 +370,7 @@ impl PythonEncoder {
                 }
             }
             // A grid of zeros gives no pixel an embedding: the map would stay empty without a
-            // word (segment tables refuse zero rows themselves).
+            // word (region tables refuse zero rows themselves).
             if data.iter().all(|x| *x == 0.0) {
                 return Err(self.output(
                     METHOD,
@@ -395,7 +395,7 @@ impl PythonEncoder {
             let got = out.get_type().to_string();
             return Err(self.output(METHOD, got, layouts));
         };
-        let expected = format!("a segment index int[{h}, {w}] and a table float[segments, {d}]");
+        let expected = format!("a region index int[{h}, {w}] and a table float[regions, {d}]");
         let index_spec = ArraySpec {
             method: METHOD,
             what: "an index",
@@ -413,20 +413,20 @@ impl PythonEncoder {
             ..index_spec
         };
         let (table, _) = self.array::<f32>(py, &table_spec, &table)?;
-        let segments = table.len() / d;
+        let regions = table.len() / d;
         let index = index
             .into_iter()
             .map(|s| match s {
-                -1 => Ok(NO_SEGMENT),
-                s if s >= 0 && (s as u64) < segments as u64 => Ok(s as u32),
+                -1 => Ok(NO_REGION),
+                s if s >= 0 && (s as u64) < regions as u64 => Ok(s as u32),
                 s => Err(self.output(
                     METHOD,
-                    format!("segment index {s} with a table of {segments} rows"),
-                    "indices in 0..segments, or -1 for no embedding".into(),
+                    format!("region index {s} with a table of {regions} rows"),
+                    "indices in 0..regions, or -1 for no embedding".into(),
                 )),
             })
             .collect::<vlem_core::Result<Vec<u32>>>()?;
-        PixelEmbeddings::from_segments(width, height, d, index, table)
+        PixelEmbeddings::from_regions(width, height, d, index, table)
             .map_err(|e| self.output(METHOD, e.to_string(), expected))
     }
 }

@@ -14,9 +14,9 @@
 //! ```
 //!
 //! The class provides `dim`, optionally `needs_regions`, `encode_image(rgb, regions)` returning a
-//! segment layout (`{"index": int[h, w] (-1: none), "table": float[segments, dim]}`) or a patch
+//! region layout (`{"index": int[h, w] (-1: none), "table": float[segments, dim]}`) or a patch
 //! grid (`{"grid": float[gh, gw, dim]}`, optionally with `"patch_size"`), and optionally
-//! `encode_text(text)` returning `float[dim]`; `vlem.Segments` and `vlem.PatchGrid` of the Python
+//! `encode_text(text)` returning `float[dim]`; `vlem.Regions` and `vlem.PatchGrid` of the Python
 //! package are the same with attributes. Every output is checked (dtype, shape, finiteness,
 //! dimension) and a violation is an error naming the method and the shape it expects.
 //!

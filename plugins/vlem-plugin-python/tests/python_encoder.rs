@@ -124,7 +124,7 @@ fn wrong_outputs_are_errors_that_name_the_method_and_the_shape() {
         ),
         (
             "return {'index': np.full((23, 37), 3), 'table': np.ones((1, 2))}",
-            "segment index 3 with a table of 1 rows",
+            "region index 3 with a table of 1 rows",
         ),
         (
             "return {'index': np.zeros((23, 37), int), 'table': np.full((1, 2), np.nan)}",

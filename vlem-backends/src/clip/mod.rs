@@ -1,4 +1,4 @@
-//! `clip`: CLIP segment embeddings (`[encoder] kind = "clip"`), the paper's segment-embedding
+//! `clip`: CLIP region embeddings (`[encoder] kind = "clip"`), the paper's segment-embedding
 //! path with a CLIP ViT on candle (CPU, or a CUDA GPU with feature `cuda`).
 //!
 //! Why it exists: CLIP embeds whole images, not pixels. The paper's answer (section
@@ -6,16 +6,16 @@
 //! own crop, and give every pixel of the region that embedding; this module is that encoder for
 //! the CLIP models users have, any ViT size in the Hugging Face layout ([`model`]).
 //!
-//! What it owns: the loaded model, the crop settings ([`crate::segment_crops::CropSpec`]: the
+//! What it owns: the loaded model, the crop settings ([`crate::region_crops::CropSpec`]: the
 //! tower's input size, the normalisation of the model's `preprocessor_config.json`, the
 //! background strategy) and the prompt templates.
 //!
 //! Image side ([`Encoder::encode_image`]): the regions' crops (one call of
-//! [`crate::segment_crops::crop_batch`], so a frame's random backgrounds do not depend on the
+//! [`crate::region_crops::crop_batch`], so a frame's random backgrounds do not depend on the
 //! batch size) run through the image tower `batch_size` crops at a time, each projected and
-//! L2-normalised, then laid out by [`crate::segment_crops::segment_embeddings`] (the smaller
+//! L2-normalised, then laid out by [`crate::region_crops::region_embeddings`] (the smaller
 //! region wins a pixel two regions cover). A frame without regions embeds nothing: every pixel
-//! is [`vlem_core::NO_SEGMENT`], which the maps skip. Text side ([`Encoder::encode_text`]): the
+//! is [`vlem_core::NO_REGION`], which the maps skip. Text side ([`Encoder::encode_text`]): the
 //! query put into each template, embedded, L2-normalised, averaged and normalised again (CLIP's
 //! prompt ensembling); with the default template `"{}"`, the query alone.
 //!
@@ -41,7 +41,7 @@ use serde::Deserialize;
 use vlem_core::{BuildContext, Encoder, PixelEmbeddings, Region, RgbImage, StageKind};
 
 use crate::error::BackendError;
-use crate::segment_crops::{self, Background, CLIP_MEAN, CLIP_STD, CropSpec};
+use crate::region_crops::{self, Background, CLIP_MEAN, CLIP_STD, CropSpec};
 
 pub use model::{CLIP_CONVERT_HINT, CLIP_INSTALL_HINT, ClipConfig, ClipModel};
 
@@ -308,7 +308,7 @@ impl ClipEncoder {
     ) -> Result<PixelEmbeddings, BackendError> {
         let dim = self.model.projection_dim();
         if regions.is_empty() {
-            return segment_crops::segment_embeddings(
+            return region_crops::region_embeddings(
                 image.width(),
                 image.height(),
                 &[],
@@ -316,9 +316,9 @@ impl ClipEncoder {
                 Vec::new(),
             );
         }
-        let pixels = segment_crops::crop_batch(image, regions, &self.crops)?;
+        let pixels = region_crops::crop_batch(image, regions, &self.crops)?;
         let table = self.embed_crops(&pixels, regions.len())?;
-        segment_crops::segment_embeddings(image.width(), image.height(), regions, dim, table)
+        region_crops::region_embeddings(image.width(), image.height(), regions, dim, table)
     }
 }
 
@@ -370,7 +370,7 @@ pub fn build(params: &toml::Table, ctx: &BuildContext) -> vlem_core::Result<Box<
 
 vlem_core::register_encoder!(
     NAME,
-    "CLIP ViT (Hugging Face layout, candle CPU) on region crops: segment embeddings; needs a \
+    "CLIP ViT (Hugging Face layout, candle CPU) on region crops: region embeddings; needs a \
      [proposer] and a model folder (model_dir)",
     build
 );

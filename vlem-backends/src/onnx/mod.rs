@@ -7,15 +7,15 @@
 //! normalisation, the tensor names and what the output means. The module owns the two towers
 //! (image, and optionally text with its tokenizer), their preprocessing, and the turning of model
 //! outputs into [`PixelEmbeddings`]; the ONNX Runtime library and sessions belong to [`runtime`],
-//! the segment crops to [`crate::segment_crops`].
+//! the region crops to [`crate::region_crops`].
 //!
 //! Image side: the image model takes one float input `N × 3 × height × width` (normalised RGB,
 //! `(x / 255 - mean) / std` per channel) and gives one of two outputs, set by `output_kind`:
 //! - `"global"`: one embedding per image, `N × dim` (a CLIP image tower with its projection).
 //!   The encoder is then a region encoder ([`Encoder::needs_regions`]): each region of the
 //!   frame is cropped, its background replaced as `background` says, resampled to `size × size`
-//!   ([`crate::segment_crops::crop_batch`]), embedded, and every pixel takes the embedding of
-//!   the smallest region covering it ([`crate::segment_crops::segment_embeddings`]).
+//!   ([`crate::region_crops::crop_batch`]), embedded, and every pixel takes the embedding of
+//!   the smallest region covering it ([`crate::region_crops::region_embeddings`]).
 //! - `"patch-grid"`: one embedding per patch, `N × (h·w) × dim` (tokens, optionally after
 //!   `skip_tokens` leading CLS/register tokens) or `N × h × w × dim`, with
 //!   `h = height / patch_size` and `w = width / patch_size`. The whole frame is resampled to
@@ -70,7 +70,7 @@ use tokenizers::{Tokenizer, TruncationParams};
 use vlem_core::{BuildContext, CoreError, Encoder, PixelEmbeddings, Region, RgbImage, StageKind};
 
 use crate::error::BackendError;
-use crate::segment_crops::{self, Background, CLIP_MEAN, CLIP_STD, CropSpec};
+use crate::region_crops::{self, Background, CLIP_MEAN, CLIP_STD, CropSpec};
 use runtime::{Input, Model, Output};
 
 /// The name this encoder is registered under (`[encoder] kind = "onnx"`).
@@ -441,7 +441,7 @@ impl OnnxEncoder {
     ) -> Result<PixelEmbeddings, BackendError> {
         match &self.image.layout {
             ImageLayout::Global { crop, batch } => {
-                let crops = segment_crops::crop_batch(image, regions, crop)?;
+                let crops = region_crops::crop_batch(image, regions, crop)?;
                 let per_crop = 3 * crop.size as usize * crop.size as usize;
                 let mut table = Vec::with_capacity(regions.len() * self.dim);
                 for chunk in crops.chunks(batch * per_crop) {
@@ -450,7 +450,7 @@ impl OnnxEncoder {
                     check_shape(&out, &[n, self.dim], "the image model's output")?;
                     table.extend(out.data);
                 }
-                segment_crops::segment_embeddings(
+                region_crops::region_embeddings(
                     image.width(),
                     image.height(),
                     regions,

@@ -1,8 +1,8 @@
 //! `Encoder`: vision-language embeddings for pixels and for text.
 //!
-//! Why it exists: the paper compares VLM backends (CLIP on segments, DINOv3 dino.txt and NARADIO on
+//! Why it exists: the paper compares VLM backends (CLIP on regions, DINOv3 dino.txt and NARADIO on
 //! patches) under one pipeline; researchers add new ones. An encoder owns its model weights and
-//! produces [`PixelEmbeddings`] in whichever layout it computes natively (segments or patch grid),
+//! produces [`PixelEmbeddings`] in whichever layout it computes natively (regions or patch grid),
 //! never a dense per-pixel tensor. The text side is a capability: an image-only encoder returns
 //! [`CoreError::Unsupported`] from [`Encoder::encode_text`].
 

@@ -7,7 +7,7 @@
 //! every class; pixels whose label is not an evaluated class are ignored. Embeddings covering an
 //! image of another size are looked up at the corresponding pixel.
 
-use vlem_core::{EmbeddingLayout, NO_SEGMENT, PixelEmbeddings};
+use vlem_core::{EmbeddingLayout, NO_REGION, PixelEmbeddings};
 
 use super::classes::ClassIndex;
 use super::sweep::ThresholdSweep;
@@ -49,9 +49,9 @@ pub fn add_image(
         });
     }
     let score = |e: &[f32], t: &[f32]| (vlem_core::query::dot(e, t) + 1.0) * 0.5;
-    // In the segment layout every pixel of a segment scores the same: score each segment once.
+    // In the region layout every pixel of a region scores the same: score each region once.
     let segment_bins: Option<Vec<usize>> = match embeddings.layout() {
-        EmbeddingLayout::Segments { table, .. } => Some(
+        EmbeddingLayout::Regions { table, .. } => Some(
             table
                 .chunks_exact(dim)
                 .flat_map(|row| {
@@ -86,12 +86,12 @@ pub fn add_image(
             };
             let (eu, ev) = lookup(u, v);
             match (&segment_bins, embeddings.layout()) {
-                (Some(table), EmbeddingLayout::Segments { index: seg, .. }) => {
+                (Some(table), EmbeddingLayout::Regions { index: seg, .. }) => {
                     let s = seg
                         .get(ev as usize * ew as usize + eu as usize)
                         .copied()
-                        .unwrap_or(NO_SEGMENT);
-                    if s == NO_SEGMENT {
+                        .unwrap_or(NO_REGION);
+                    if s == NO_REGION {
                         bins.fill(0);
                     } else {
                         let row = s as usize * classes;
@@ -138,14 +138,14 @@ mod tests {
 
     /// A 2x2 image, thresholds 0, 0.5, 1; worked by hand.
     #[test]
-    fn segment_embeddings_against_a_label_image() {
+    fn region_embeddings_against_a_label_image() {
         // Pixels: (0,0) wall in segment 0 ([1, 0]); (1,0) wall in segment 1 ([0, 1]); (0,1) floor
         // in segment 0; (1,1) unlabelled.
-        let e = PixelEmbeddings::from_segments(
+        let e = PixelEmbeddings::from_regions(
             2,
             2,
             2,
-            vec![0, 1, 0, NO_SEGMENT],
+            vec![0, 1, 0, NO_REGION],
             vec![1.0, 0.0, 0.0, 1.0],
         )
         .unwrap();
@@ -179,7 +179,7 @@ mod tests {
         let classes = classes();
         let index = ClassIndex::new(&classes);
         // A wall pixel without a segment: a false negative at every threshold.
-        let e = PixelEmbeddings::from_segments(1, 1, 2, vec![NO_SEGMENT], vec![1.0, 0.0]).unwrap();
+        let e = PixelEmbeddings::from_regions(1, 1, 2, vec![NO_REGION], vec![1.0, 0.0]).unwrap();
         let mut sweep = ThresholdSweep::new(2, 2).unwrap();
         add_image(&mut sweep, &[1], 1, 1, &e, &texts, &index).unwrap();
         assert_eq!(sweep.class_iou(0), Some(0.0));

@@ -214,7 +214,7 @@ impl<'a> FramePixels<'a> {
     }
 }
 
-/// The embedding of the pixel with linear index `pixel`: the stored row in the segment layout
+/// The embedding of the pixel with linear index `pixel`: the stored row in the region layout
 /// (no copy), interpolated into `scratch` (of the embeddings' dimension) for a patch grid. `None`
 /// for a pixel without one (outside every segment, or an interpolation that cancels out).
 #[inline]
@@ -223,7 +223,7 @@ pub fn embedding<'s>(
     pixel: u32,
     scratch: &'s mut [f32],
 ) -> Option<&'s [f32]> {
-    if let Some(row) = embeddings.segment_row_at_index(pixel as usize) {
+    if let Some(row) = embeddings.region_row_at_index(pixel as usize) {
         return Some(row);
     }
     let width = embeddings.width();

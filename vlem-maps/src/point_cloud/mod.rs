@@ -1028,7 +1028,7 @@ mod tests {
         let f = plane(1.0);
         // Two observations with different embeddings on the left and right halves.
         let index: Vec<u32> = (0..16 * 12).map(|i| u32::from(i % 16 >= 8)).collect();
-        let a = PixelEmbeddings::from_segments(
+        let a = PixelEmbeddings::from_regions(
             16,
             12,
             DIM,
@@ -1036,7 +1036,7 @@ mod tests {
             vec![0.9, 0.1, 0.3, 0.2, 0.1, 0.8, 0.2, 0.4],
         )
         .unwrap();
-        let b = PixelEmbeddings::from_segments(
+        let b = PixelEmbeddings::from_regions(
             16,
             12,
             DIM,

@@ -257,9 +257,9 @@ impl SegmentMap {
             let acc = groups.entry(label).or_default();
             if let Some(e) = obs.embeddings {
                 match e.layout() {
-                    EmbeddingLayout::Segments { .. } => {
+                    EmbeddingLayout::Regions { .. } => {
                         if acc.embedding.is_empty()
-                            && let Some(row) = e.segment_row(u, v)
+                            && let Some(row) = e.region_row(u, v)
                         {
                             acc.embedding.extend_from_slice(row);
                         }
@@ -454,9 +454,9 @@ impl SegmentMap {
 /// (nearest patch centre) for a patch grid. `None` for pixels without an embedding.
 fn pixel_label(e: &PixelEmbeddings, u: u32, v: u32) -> Option<u32> {
     match e.layout() {
-        EmbeddingLayout::Segments { index, .. } => {
+        EmbeddingLayout::Regions { index, .. } => {
             let s = *index.get((v * e.width() + u) as usize)?;
-            (s != vlem_core::NO_SEGMENT).then_some(s)
+            (s != vlem_core::NO_REGION).then_some(s)
         }
         EmbeddingLayout::PatchGrid {
             grid_width,
@@ -744,7 +744,7 @@ mod tests {
     /// Columns below `split` are segment 0, the rest segment 1.
     fn split(split: u32, a: [f32; DIM], b: [f32; DIM]) -> PixelEmbeddings {
         let index = (0..16 * 12).map(|i| u32::from(i % 16 >= split)).collect();
-        PixelEmbeddings::from_segments(16, 12, DIM, index, [a, b].concat()).unwrap()
+        PixelEmbeddings::from_regions(16, 12, DIM, index, [a, b].concat()).unwrap()
     }
 
     fn config() -> SegmentConfig {

@@ -5,7 +5,7 @@
 //! frame's embeddings copied back to the host and a million rows fused there while the GPU
 //! waits. Here the table is one `capacity × dim` tensor on the device, allocated for the budget
 //! when the map is built. A frame's embeddings cross to the device once, in their compact form
-//! (the segment table, or the patch grid), and the rows to fuse or insert cross as index lists
+//! (the region table, or the patch grid), and the rows to fuse or insert cross as index lists
 //! with the (at most four) table rows and weights each pixel's embedding is made of. Fusion
 //! (blend, renormalise), insertion, the budget's merges and row moves, and a query's scores (all
 //! texts in one matrix product) are tensor operations on the device; rows come back to the host
@@ -20,7 +20,7 @@
 
 use candle_core::{DType, Device, Tensor};
 use vlem_core::embeddings::PatchSampler;
-use vlem_core::{EmbeddingLayout, NO_SEGMENT, PixelEmbeddings};
+use vlem_core::{EmbeddingLayout, NO_REGION, PixelEmbeddings};
 
 use super::Precision;
 use crate::error::MapError;
@@ -86,14 +86,14 @@ pub struct FrameTable<'a> {
 }
 
 impl<'a> FrameTable<'a> {
-    /// Copies the frame's segment table or patch grid to `table`'s device.
+    /// Copies the frame's region table or patch grid to `table`'s device.
     ///
     /// # Errors
     /// [`MapError::DeviceTable`] when the copy fails.
     pub fn upload(embeddings: &'a PixelEmbeddings, table: &DeviceTable) -> Result<Self, MapError> {
         let d = embeddings.dim();
         let data = match embeddings.layout() {
-            EmbeddingLayout::Segments { table, .. } => table,
+            EmbeddingLayout::Regions { table, .. } => table,
             EmbeddingLayout::PatchGrid { data, .. } => data,
         };
         let rows = data.len().checked_div(d).unwrap_or(0);
@@ -140,8 +140,8 @@ impl<'a> FrameTable<'a> {
                 let width = self.embeddings.width();
                 sampler.weights(pixel % width, pixel / width)
             }
-            (None, EmbeddingLayout::Segments { index, .. }) => match index.get(pixel as usize) {
-                Some(&s) if s != NO_SEGMENT => Some([(s, 1.0), (0, 0.0), (0, 0.0), (0, 0.0)]),
+            (None, EmbeddingLayout::Regions { index, .. }) => match index.get(pixel as usize) {
+                Some(&s) if s != NO_REGION => Some([(s, 1.0), (0, 0.0), (0, 0.0), (0, 0.0)]),
                 _ => None,
             },
             (None, EmbeddingLayout::PatchGrid { .. }) => None,

@@ -295,7 +295,7 @@ impl Source<'_> {
                     }
                 }
             } else if let Some(e) = self.embeddings {
-                if let Some(row) = e.segment_row(u, v) {
+                if let Some(row) = e.region_row(u, v) {
                     let same =
                         matches!(pending, Some((p, _)) if std::ptr::eq(p.as_ptr(), row.as_ptr()));
                     if same {
@@ -1304,7 +1304,7 @@ mod tests {
         // rows must give the same mean as adding every pixel.
         let index: Vec<u32> = (0..W * H).map(|i| u32::from(i % W >= 5)).collect();
         let table = vec![1.0, 0.0, 0.0, 0.0, 0.0, 0.6, 0.8, 0.0];
-        let e = PixelEmbeddings::from_segments(W, H, DIM, index, table).unwrap();
+        let e = PixelEmbeddings::from_regions(W, H, DIM, index, table).unwrap();
         let mut m = map(VoxelConfig {
             voxel_size: 0.2,
             ..VoxelConfig::default()

@@ -59,7 +59,7 @@ __all__ = [
     "PatchGrid",
     "Pipeline",
     "QueryError",
-    "Segments",
+    "Regions",
     "StageError",
     "StudyTable",
     "VlemError",
@@ -75,11 +75,11 @@ __all__ = [
 
 
 @dataclass
-class Segments:
-    """What a Python encoder's ``encode_image`` returns for segment embeddings.
+class Regions:
+    """What a Python encoder's ``encode_image`` returns for region embeddings.
 
-    ``index``: integer ``[h, w]`` array, the segment of each pixel (``-1``: no embedding);
-    ``table``: ``float32[segments, dim]``, one embedding per segment (vlem normalises the rows).
+    ``index``: integer ``[h, w]`` array, the region of each pixel (``-1``: no embedding);
+    ``table``: ``float32[regions, dim]``, one embedding per region (vlem normalises the rows).
     """
 
     index: Any

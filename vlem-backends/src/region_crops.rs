@@ -1,13 +1,13 @@
-//! Segment crops and segment embeddings: the preprocessing of the paper's segment-embedding path
-//! (section "Segment-Embeddings"), shared by every encoder that embeds one crop per region
-//! (`clip`, `onnx`).
+//! Region crops and region embeddings: the preprocessing of the paper's segment-embedding path
+//! (section "Segment-Embeddings"; vlem says *region* for what the paper calls a segment), shared
+//! by every encoder that embeds one crop per region (`clip`, `onnx`).
 //!
 //! Why it exists: cropping, background replacement, resampling and normalisation decide what a
 //! region encoder sees, and the paper ablates exactly these choices; written once here, every
 //! encoder makes them the same way and the ablation is a config switch. The module owns two steps:
 //!
 //! - [`crop_batch`]: region crops → an `N × 3 × size × size` batch for a vision tower;
-//! - [`segment_embeddings`]: one embedding per region → [`PixelEmbeddings`] in the segment
+//! - [`region_embeddings`]: one embedding per region → [`PixelEmbeddings`] in the region
 //!   layout, resolving overlaps in favour of the smaller region.
 //!
 //! Crop pipeline, per region `k` (in the paper's notation `C_k` is the crop, `M_k` its mask):
@@ -22,7 +22,7 @@
 
 use image::imageops::{self, FilterType};
 use image::{ImageBuffer, Rgb};
-use vlem_core::{NO_SEGMENT, PixelEmbeddings, Region, RgbImage};
+use vlem_core::{NO_REGION, PixelEmbeddings, Region, RgbImage};
 
 use crate::error::BackendError;
 
@@ -52,12 +52,12 @@ pub enum Background {
     Static,
     /// The mean colour of the whole image, `v = mean(C_i)`.
     MeanImage,
-    /// The mean colour of the segment's foreground pixels, `v = mean(C_k | M_k = 1)`.
+    /// The mean colour of the region's foreground pixels, `v = mean(C_k | M_k = 1)`.
     ///
     /// The paper's formula writes `M_k(u, v) = 0`, which read literally is the mean of exactly
     /// the pixels being replaced, i.e. a blurred form of [`Background::None`]; its name, "mean
     /// segment foreground", says foreground. We follow the name: the background takes the
-    /// segment's own average colour, which hides the neighbours without adding a foreign colour.
+    /// region's own average colour, which hides the neighbours without adding a foreign colour.
     MeanSegment,
 }
 
@@ -135,20 +135,20 @@ pub fn crop_batch(
     Ok(out)
 }
 
-/// Per-pixel segment assignment and embedding table, as [`PixelEmbeddings`] in the segment
+/// Per-pixel region assignment and embedding table, as [`PixelEmbeddings`] in the region
 /// layout for a `width × height` image.
 ///
 /// `embeddings` is `regions.len() × dim`, row `k` the embedding of `regions[k]`; rows are
-/// L2-normalised by [`PixelEmbeddings::from_segments`]. Each pixel gets the index of the region
+/// L2-normalised by [`PixelEmbeddings::from_regions`]. Each pixel gets the index of the region
 /// of smallest area (foreground pixel count) among those whose mask covers it, ties going to the
 /// lower index: a small object lying on a larger surface keeps its own embedding. Pixels in no
-/// mask get [`NO_SEGMENT`], i.e. no embedding. A region that wins no pixel keeps its row (unused).
+/// mask get [`NO_REGION`], i.e. no embedding. A region that wins no pixel keeps its row (unused).
 ///
 /// # Errors
 /// [`BackendError::InvalidInput`] when `dim` is 0, `embeddings` does not hold
 /// `regions.len() × dim` values, a region does not fit the image or its mask has the wrong
 /// length, or a row is zero or non-finite.
-pub fn segment_embeddings(
+pub fn region_embeddings(
     width: u32,
     height: u32,
     regions: &[Region],
@@ -157,7 +157,7 @@ pub fn segment_embeddings(
 ) -> Result<PixelEmbeddings, BackendError> {
     if dim == 0 {
         return Err(BackendError::InvalidInput(
-            "segment embeddings of dimension 0".to_owned(),
+            "region embeddings of dimension 0".to_owned(),
         ));
     }
     if regions.len().checked_mul(dim) != Some(embeddings.len()) {
@@ -171,10 +171,10 @@ pub fn segment_embeddings(
     for (k, region) in regions.iter().enumerate() {
         check_region(k, region, width, height)?;
     }
-    // Indices 0..len must stay below NO_SEGMENT (u32::MAX), the "no segment" marker.
-    if u32::try_from(regions.len()).map_or(true, |n| n == NO_SEGMENT) {
+    // Indices 0..len must stay below NO_REGION (u32::MAX), the "no region" marker.
+    if u32::try_from(regions.len()).map_or(true, |n| n == NO_REGION) {
         return Err(BackendError::InvalidInput(format!(
-            "{} regions do not fit a u32 segment index",
+            "{} regions do not fit a u32 region index",
             regions.len()
         )));
     }
@@ -183,12 +183,12 @@ pub fn segment_embeddings(
     let areas: Vec<usize> = regions.iter().map(Region::area).collect();
     let mut order: Vec<usize> = (0..regions.len()).collect();
     order.sort_by_key(|&k| areas.get(k).copied().unwrap_or(usize::MAX));
-    let mut index = vec![NO_SEGMENT; width as usize * height as usize];
+    let mut index = vec![NO_REGION; width as usize * height as usize];
     for k in order {
         let Some(region) = regions.get(k) else {
             continue;
         };
-        // Fits: checked above that the count is below NO_SEGMENT.
+        // Fits: checked above that the count is below NO_REGION.
         let label = k as u32;
         let b = region.bbox;
         for (row, mask_row) in region.mask.chunks_exact(b.width as usize).enumerate() {
@@ -197,13 +197,13 @@ pub fn segment_embeddings(
                 continue;
             };
             for (pixel, &inside) in pixels.iter_mut().zip(mask_row) {
-                if inside && *pixel == NO_SEGMENT {
+                if inside && *pixel == NO_REGION {
                     *pixel = label;
                 }
             }
         }
     }
-    PixelEmbeddings::from_segments(width, height, dim, index, embeddings)
+    PixelEmbeddings::from_regions(width, height, dim, index, embeddings)
         .map_err(|e| BackendError::InvalidInput(e.to_string()))
 }
 

@@ -4,11 +4,11 @@
     clippy::panic,
     reason = "tests"
 )]
-//! `segment_crops` on tiny images whose crops and assignments are computed by hand.
+//! `region_crops` on tiny images whose crops and assignments are computed by hand.
 
 use vlem_backends::BackendError;
-use vlem_backends::segment_crops::{Background, CropSpec, crop_batch, segment_embeddings};
-use vlem_core::{EmbeddingLayout, NO_SEGMENT, PixelRect, Region, RgbImage};
+use vlem_backends::region_crops::{Background, CropSpec, crop_batch, region_embeddings};
+use vlem_core::{EmbeddingLayout, NO_REGION, PixelRect, Region, RgbImage};
 
 /// A 4×4 image whose pixel `(u, v)` is `(10u + 1, 10v + 2, 10(u + v) + 3)`, so every value says
 /// where it came from.
@@ -320,10 +320,10 @@ fn background_names_are_kebab_case() {
     assert_eq!(Background::default(), Background::None);
 }
 
-/// The segment index of each pixel of a segment-layout result.
+/// The region index of each pixel of a region-layout result.
 fn index_of(e: &vlem_core::PixelEmbeddings) -> Vec<u32> {
     match e.layout() {
-        EmbeddingLayout::Segments { index, .. } => index.clone(),
+        EmbeddingLayout::Regions { index, .. } => index.clone(),
         EmbeddingLayout::PatchGrid { .. } => panic!("patch layout"),
     }
 }
@@ -333,15 +333,15 @@ fn the_smaller_segment_wins_on_overlap_in_either_order() {
     // A: the whole 4×1 row; B: its middle two pixels.
     let a = region(0, 0, 4, 1, &[true; 4]);
     let b = region(1, 0, 2, 1, &[true, true]);
-    let e = segment_embeddings(4, 1, &[a.clone(), b.clone()], 2, vec![3.0, 0.0, 0.0, 2.0]).unwrap();
+    let e = region_embeddings(4, 1, &[a.clone(), b.clone()], 2, vec![3.0, 0.0, 0.0, 2.0]).unwrap();
     assert_eq!(index_of(&e), [0, 1, 1, 0]);
     assert_eq!(
-        e.segment_row(0, 0).unwrap(),
+        e.region_row(0, 0).unwrap(),
         [1.0, 0.0],
         "rows are normalised"
     );
-    assert_eq!(e.segment_row(1, 0).unwrap(), [0.0, 1.0]);
-    let swapped = segment_embeddings(4, 1, &[b, a], 2, vec![0.0, 2.0, 3.0, 0.0]).unwrap();
+    assert_eq!(e.region_row(1, 0).unwrap(), [0.0, 1.0]);
+    let swapped = region_embeddings(4, 1, &[b, a], 2, vec![0.0, 2.0, 3.0, 0.0]).unwrap();
     assert_eq!(index_of(&swapped), [1, 0, 0, 1]);
 }
 
@@ -350,15 +350,15 @@ fn area_counts_mask_pixels_not_the_box() {
     // A has the larger box but only two foreground pixels; B covers three. A wins where both are.
     let a = region(0, 0, 3, 2, &[true, false, false, false, false, true]);
     let b = region(0, 0, 3, 1, &[true, true, true]);
-    let e = segment_embeddings(3, 2, &[b, a], 1, vec![1.0, 1.0]).unwrap();
-    assert_eq!(index_of(&e), [1, 0, 0, NO_SEGMENT, NO_SEGMENT, 1]);
+    let e = region_embeddings(3, 2, &[b, a], 1, vec![1.0, 1.0]).unwrap();
+    assert_eq!(index_of(&e), [1, 0, 0, NO_REGION, NO_REGION, 1]);
 }
 
 #[test]
 fn equal_areas_go_to_the_lower_index() {
     let a = region(0, 0, 2, 1, &[true, true]);
     let b = region(1, 0, 2, 1, &[true, true]);
-    let e = segment_embeddings(3, 1, &[a, b], 1, vec![1.0, -1.0]).unwrap();
+    let e = region_embeddings(3, 1, &[a, b], 1, vec![1.0, -1.0]).unwrap();
     assert_eq!(index_of(&e), [0, 0, 1]);
 }
 
@@ -366,15 +366,15 @@ fn equal_areas_go_to_the_lower_index() {
 fn pixels_in_no_mask_have_no_embedding() {
     // The region's box covers (0, 0) and (1, 0), but its mask only (1, 0); (2, 0) is outside it.
     let r = region(0, 0, 2, 1, &[false, true]);
-    let e = segment_embeddings(3, 1, &[r], 2, vec![0.0, 5.0]).unwrap();
-    assert_eq!(index_of(&e), [NO_SEGMENT, 0, NO_SEGMENT]);
+    let e = region_embeddings(3, 1, &[r], 2, vec![0.0, 5.0]).unwrap();
+    assert_eq!(index_of(&e), [NO_REGION, 0, NO_REGION]);
     assert!(!e.has_embedding(0, 0));
     assert!(e.has_embedding(1, 0));
     assert!(!e.has_embedding(2, 0));
     let mut out = [0.0; 2];
     assert!(!e.embedding_at(2, 0, &mut out));
-    let none = segment_embeddings(3, 1, &[], 2, Vec::new()).unwrap();
-    assert_eq!(index_of(&none), [NO_SEGMENT; 3]);
+    let none = region_embeddings(3, 1, &[], 2, Vec::new()).unwrap();
+    assert_eq!(index_of(&none), [NO_REGION; 3]);
 }
 
 #[test]
@@ -383,21 +383,21 @@ fn mismatched_inputs_are_errors() {
     let cases: [(&str, Result<_, _>); 5] = [
         (
             "too few values",
-            segment_embeddings(2, 1, std::slice::from_ref(&r), 2, vec![1.0]),
+            region_embeddings(2, 1, std::slice::from_ref(&r), 2, vec![1.0]),
         ),
         (
             "too many values",
-            segment_embeddings(2, 1, std::slice::from_ref(&r), 2, vec![1.0; 3]),
+            region_embeddings(2, 1, std::slice::from_ref(&r), 2, vec![1.0; 3]),
         ),
         (
             "dim 0",
-            segment_embeddings(2, 1, std::slice::from_ref(&r), 0, Vec::new()),
+            region_embeddings(2, 1, std::slice::from_ref(&r), 0, Vec::new()),
         ),
         (
             "outside",
-            segment_embeddings(1, 1, std::slice::from_ref(&r), 1, vec![1.0]),
+            region_embeddings(1, 1, std::slice::from_ref(&r), 1, vec![1.0]),
         ),
-        ("zero row", segment_embeddings(2, 1, &[r], 1, vec![0.0])),
+        ("zero row", region_embeddings(2, 1, &[r], 1, vec![0.0])),
     ];
     for (what, result) in cases {
         assert!(
@@ -407,7 +407,7 @@ fn mismatched_inputs_are_errors() {
     }
     let bad_mask = region(0, 0, 2, 1, &[true]);
     assert!(matches!(
-        segment_embeddings(2, 1, &[bad_mask], 1, vec![1.0]),
+        region_embeddings(2, 1, &[bad_mask], 1, vec![1.0]),
         Err(BackendError::InvalidInput(_))
     ));
 }
