@@ -36,6 +36,15 @@
 //!   patch token mapped by the `siglip` adaptor into SigLIP's text space, queries through the
 //!   SigLIP text tower; a patch encoder. Needs a model folder made by `convert_radio.py`.
 //!
+//! Shared by the candle models: `attention`, the one multi-head attention layer (fused, per-head
+//! or separate input projections; a bias, NACLIP's key-key scores or SAM's decomposed relative
+//! positions as score options; the scaled product in bounded chunks, where a fused device kernel
+//! goes); `vit`, the ViT layers of DINOv3 and RADIO; `patch_input`, the patch encoders' input;
+//! [`model_files`], the model file lookups; `device`, the `device = "cpu" | "cuda[:N]"` key that
+//! every candle backend and the maps share, its checks and opening (feature `candle`; `cuda`:
+//! candle's CUDA backend), and the sampler of a run's peak device memory; `kernels`, the fused
+//! CPU matrix product and GELU, with candle's own ops on other devices.
+//!
 //! The weight-free reference encoder, and the how-to for writing one, is the plugin
 //! `plugins/vlem-plugin-colour-names`.
 //!

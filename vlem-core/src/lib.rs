@@ -1,6 +1,22 @@
 //! vlem-core: the types, stage traits, configuration, plugin registry, pipeline and map file of
 //! vlem, a framework for real-time 3D vision-language embedding mapping (Rauch et al., "VLEM").
 //!
+//! What is where:
+//! - [`types`]: images, intrinsics, poses, frames, regions; [`embeddings`]: an encoder's output,
+//!   [`PixelEmbeddings`] (a region table or a patch grid; `PatchSampler` reads patch-grid pixels as
+//!   weights of grid rows);
+//! - `traits/`, one file per stage trait ([`FrameSource`], [`Tracker`], [`RegionProposer`],
+//!   [`Encoder`], [`EmbeddingMap`], [`Segmenter`]), and [`StageKind`], a leaf module;
+//! - the `inventory` registry ([`Registry`]; `register_*!` macros, datasets included, with a probe
+//!   for `kind = "auto"`; `feature_hint!`);
+//! - [`config`]: the TOML config and its loading (the keys every dataset reader shares; readers'
+//!   and the ROS 2 node's own keys stay tables for their crates to parse);
+//! - [`pipeline`]: the threaded pipeline, its `RunReport` and its `StopHandle` (ends a run early
+//!   from another thread, e.g. on Ctrl-C); [`stream`]: frames pushed in by a caller;
+//! - [`live`]: the map while it is built, shared with readers; [`mapfile`]: the map file format;
+//! - [`files`]: crash-safe result files and the process's memory; [`query`]: the similarity
+//!   kernel; [`ranges`]: the checked ranges of config values.
+//!
 //! See `ARCHITECTURE.md` at the repository root for the data flow and which crate owns what.
 
 pub mod config;
