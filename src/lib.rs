@@ -7,6 +7,8 @@
 //! vlem = { path = "../vlem", default-features = false, features = ["point-cloud", "colour-names"] }
 //! ```
 //!
+//! Without `default-features`, the `cli` feature is off too: the command's own dependencies
+//! (argument parsing, progress bars, plots, signal handling) are not compiled.
 //! `tests/library-user/` is such a program, outside the workspace; CI builds and runs it.
 //!
 //! ```no_run

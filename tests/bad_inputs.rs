@@ -1,6 +1,7 @@
 //! Bad inputs a user can hand `vlem`, and the exact error each one gets (the catalogue is
 //! docs/bad-inputs.md). Cases that other test files already cover are listed there with their
 //! test; this file holds the ones that had no end-to-end test.
+#![cfg(feature = "cli")]
 #![allow(
     clippy::unwrap_used,
     clippy::expect_used,

@@ -1,5 +1,6 @@
 //! End-to-end tests of the `vlem` command: the demo, run/query on the committed real frames, the
 //! plugin list, and the error messages users see.
+#![cfg(feature = "cli")]
 #![allow(
     clippy::unwrap_used,
     clippy::expect_used,

@@ -4,6 +4,7 @@
 //! binary builds it, run on a few small frames. Checks that exactly the pixels inside a region
 //! (with valid depth) become map points, that the map has the CLIP projection's dimension and
 //! that a text query scores every point with a finite normalised cosine.
+#![cfg(feature = "cli")]
 #![cfg(all(feature = "clip", feature = "graph", feature = "point-cloud"))]
 #![allow(
     clippy::unwrap_used,

@@ -14,6 +14,7 @@
 //!   reason is required;
 //! - `features=a,b`: run when this build has those cargo features;
 //! - `if-exists=PATH`: run when PATH exists (the sequence beside the repository).
+#![cfg(feature = "cli")]
 #![cfg(all(
     feature = "point-cloud",
     feature = "voxel",

@@ -2,6 +2,7 @@
 //! mapped with the weight-free colour-names encoder (class names replaced by colour words through
 //! --prompts, since that encoder knows only colours), both 3D protocols and the 2D one, the JSON
 //! report's shape, and the errors for unlabelled datasets and unembeddable class names.
+#![cfg(feature = "cli")]
 #![cfg(all(feature = "colour-names", feature = "point-cloud"))]
 #![allow(
     clippy::unwrap_used,

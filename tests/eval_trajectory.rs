@@ -1,5 +1,6 @@
 //! End-to-end tests of `vlem eval trajectory`: the committed living-room `.log` against perturbed
 //! TUM copies with known errors, a hand-computed case paired by timestamp, and the error messages.
+#![cfg(feature = "cli")]
 #![allow(
     clippy::unwrap_used,
     clippy::expect_used,

@@ -6,6 +6,7 @@
 //! Checks that every pixel with depth becomes a map point (a patch encoder embeds the whole
 //! frame), that the map has the patch embedding's dimension and that text queries score every
 //! point with a finite normalised cosine.
+#![cfg(feature = "cli")]
 #![cfg(all(feature = "point-cloud", any(feature = "dinov3", feature = "naradio")))]
 #![allow(
     clippy::unwrap_used,

@@ -2,6 +2,7 @@
 //! copy of colour-names maps the committed frames and its map answers `vlem query` as the Rust
 //! encoder's does; a raising Python encoder stops the run with the exception and its traceback.
 //! Needs numpy in the interpreter pyo3 linked (CI installs it).
+#![cfg(feature = "cli")]
 #![cfg(all(feature = "python", feature = "colour-names", feature = "point-cloud"))]
 #![allow(clippy::unwrap_used, clippy::expect_used, reason = "tests")]
 

@@ -1,5 +1,6 @@
 //! `vlem query --interactive`: many queries on one loaded map, commands that change the
 //! selection, errors that do not end the session, and a PLY per query.
+#![cfg(feature = "cli")]
 #![allow(
     clippy::unwrap_used,
     clippy::expect_used,

@@ -1,5 +1,6 @@
 //! The rerun recordings of `vlem run`/`demo --rerun` and `vlem query --rerun`, read back with the
 //! rerun SDK's decoder: the entities docs/usage.md promises are in the file, with a row per frame.
+#![cfg(feature = "cli")]
 #![cfg(feature = "rerun")]
 #![allow(
     clippy::unwrap_used,

@@ -1,6 +1,7 @@
 //! `vlem ros2` before it touches the network: a build without the feature says how to get it,
 //! and settings that cannot work are refused before the node starts. The node itself is tested
 //! against a Cyclone DDS peer by tests/ros2/node_peer.py (run by .ci/run).
+#![cfg(feature = "cli")]
 #![allow(clippy::unwrap_used, clippy::expect_used, reason = "tests")]
 
 mod common;

@@ -1,6 +1,7 @@
 //! `vlem run` on a ROS 2 bag: the committed living-room frames as a folder and as a bag written
 //! by the `rosbags` Python package (vlem-datasets/tests/data/rosbag2) give the same trajectory
 //! and the same map, with frame-to-frame odometry estimating the poses.
+#![cfg(feature = "cli")]
 #![cfg(all(feature = "rosbag2", feature = "colour-names", feature = "point-cloud"))]
 #![allow(clippy::unwrap_used, clippy::expect_used, reason = "tests")]
 

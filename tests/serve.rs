@@ -1,6 +1,7 @@
 //! `vlem run --serve` end to end: the demo run serves its live map on a loopback port, a plain
 //! HTTP client (ureq, not vlem's own client) exercises every endpoint and its error answers, and
 //! `vlem query --connect` prints what `vlem query --map` prints for the saved map.
+#![cfg(feature = "cli")]
 #![cfg(all(feature = "colour-names", feature = "point-cloud"))]
 #![allow(
     clippy::unwrap_used,

@@ -2,6 +2,7 @@
 //! trajectory and the stats so far (`stopped: true`), as one set that replaces an earlier run's,
 //! and exits with status 130; with `--serve-after`, a signal ends the serving once the run has
 //! finished, with status 0.
+#![cfg(feature = "cli")]
 #![cfg(all(unix, feature = "colour-names", feature = "point-cloud"))]
 #![allow(
     clippy::unwrap_used,

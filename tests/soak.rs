@@ -1,5 +1,6 @@
 //! `vlem soak`, shortened for CI: a few hundred small synthetic frames under a tiny map budget.
 //! The full 10,000-frame run is in BENCHMARKS.md ("Soak").
+#![cfg(feature = "cli")]
 #![cfg(feature = "point-cloud")]
 #![allow(
     clippy::unwrap_used,

@@ -1,4 +1,5 @@
 //! `vlem study`: cells, shards, resuming, failing cells, the CSV and the plot.
+#![cfg(feature = "cli")]
 #![cfg(all(feature = "colour-names", feature = "point-cloud"))]
 #![allow(
     clippy::unwrap_used,

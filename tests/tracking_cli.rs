@@ -1,5 +1,6 @@
 //! `vlem run` with the dense trackers: tracking-only configs on a dataset without poses, the
 //! frame-to-model colour model, the synthetic scene, and mapping on estimated poses.
+#![cfg(feature = "cli")]
 #![allow(
     clippy::unwrap_used,
     clippy::expect_used,
