@@ -165,11 +165,13 @@ fn main() -> Result<()> {
     // An unknown key of the reader's own is refused, naming it and (found again in the text) its
     // line.
     let typo = "[dataset]\nkind = \"image-list\"\nlsit = \"x.txt\"\n";
-    let config = Config::from_toml(typo).map_err(anyhow::Error::msg)?;
+    let config = Config::from_toml(typo)
+        .map_err(anyhow::Error::msg)?
+        .with_source_text(typo, "typo.toml");
     let err = vlem::datasets::open(&config.dataset, &folder)
         .err()
         .context("the typo was accepted")?;
-    let err = vlem::core::config::with_config_text_line(err, typo, "typo.toml");
+    let err = config.locate(err);
     println!("a typo: {err}");
     std::fs::remove_dir_all(&folder)?;
     Ok(())

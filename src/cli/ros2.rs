@@ -37,8 +37,8 @@ pub fn execute(args: &Ros2Args) -> Result<()> {
     use vlem_core::pipeline::Pipeline;
 
     let (config, ctx) = vlem_core::load_config(&args.config)?;
-    let located = |e| vlem_core::config::with_config_line(e, &args.config);
-    let pipeline = Pipeline::from_config(&config, &ctx).map_err(located)?;
+    let located = |e| config.locate(e);
+    let pipeline = Pipeline::from_config(&config, &ctx)?;
     let segmenter = Registry::global()?
         .build_segmenter(&config.query.segmenter, &ctx)
         .map_err(located)?;

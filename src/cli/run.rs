@@ -90,8 +90,6 @@ struct ServeArgs {
 
 /// Command-line choices of `vlem run` beyond the config.
 struct RunOptions<'a> {
-    /// The config file, for errors that name a line of it (none for the embedded demo config).
-    config_file: Option<&'a Path>,
     dataset: Option<&'a Path>,
     max_frames: Option<usize>,
     colour_model: bool,
@@ -110,7 +108,6 @@ pub fn execute(args: &RunArgs) -> Result<()> {
         ctx,
         &args.out,
         &RunOptions {
-            config_file: Some(&args.config),
             dataset: args.dataset.as_deref(),
             max_frames: args.max_frames,
             colour_model: !args.no_colour_model,
@@ -133,7 +130,6 @@ pub fn demo(args: &DemoArgs) -> Result<()> {
         ctx,
         &args.out,
         &RunOptions {
-            config_file: None,
             dataset: None,
             max_frames: None,
             colour_model: true,
@@ -148,11 +144,9 @@ fn run(mut config: Config, ctx: BuildContext, out: &Path, options: &RunOptions<'
     if options.max_frames.is_some() {
         config.dataset.max_frames = options.max_frames;
     }
-    let located = |e| match options.config_file {
-        Some(path) => vlem_core::config::with_config_line(e, path),
-        None => e,
-    };
-    let mut pipeline = Pipeline::from_config(&config, &ctx).map_err(located)?;
+    // A key a stage's owner parses is found again on its line of the file.
+    let located = |e| config.locate(e);
+    let mut pipeline = Pipeline::from_config(&config, &ctx)?;
     // Built before mapping so a bad [query.segmenter] fails at start-up, not after the run.
     let segmenter = Registry::global()?
         .build_segmenter(&config.query.segmenter, &ctx)

@@ -226,11 +226,10 @@ pub fn execute(args: &SoakArgs) -> Result<()> {
         toml::Value::Integer(i64::try_from(frames).context("--frames is too large")?),
     );
 
-    let mut pipeline = Pipeline::from_config(&config, &ctx)
-        .map_err(|e| vlem_core::config::with_config_line(e, path))?;
+    let mut pipeline = Pipeline::from_config(&config, &ctx)?;
     let (budget_key, budget) = map_budget(&config, pipeline.map().as_deref(), path)?;
-    let mut source = vlem_datasets::open(&config.dataset, &ctx.config_dir)
-        .map_err(|e| vlem_core::config::with_config_line(e, path))?;
+    let mut source =
+        vlem_datasets::open(&config.dataset, &ctx.config_dir).map_err(|e| config.locate(e))?;
     std::fs::create_dir_all(&args.out)
         .with_context(|| format!("cannot create {}", args.out.display()))?;
     let total = source.len();

@@ -26,6 +26,7 @@
 //! ```
 
 use std::path::{Path, PathBuf};
+use std::sync::Arc;
 use std::time::Duration;
 
 use serde::{Deserialize, Serialize};
@@ -61,6 +62,27 @@ pub struct Config {
     /// it (`vlem_ros2::Ros2Config`); `None` means every default.
     #[serde(default, skip_serializing_if = "Option::is_none")]
     pub ros2: Option<toml::Table>,
+    /// The text the config was read from, for [`Config::locate`].
+    #[serde(skip)]
+    source: ConfigSource,
+}
+
+/// The text a config was read from and where it came from (a file's path), kept so that an error
+/// found after parsing can name its line: a stage parses its own keys from a table that no longer
+/// knows its lines. Not part of the config's value: configs compare equal whatever their source.
+#[derive(Clone, Debug, Default)]
+struct ConfigSource(Option<Arc<SourceText>>);
+
+#[derive(Debug)]
+struct SourceText {
+    origin: String,
+    text: String,
+}
+
+impl PartialEq for ConfigSource {
+    fn eq(&self, _other: &Self) -> bool {
+        true
+    }
 }
 
 fn default_tracker() -> StageConfig {
@@ -78,10 +100,34 @@ impl Config {
             path: path.to_path_buf(),
             source,
         })?;
-        Self::from_toml(&text).map_err(|message| CoreError::Config {
+        let config = Self::from_toml(&text).map_err(|message| CoreError::Config {
             path: path.to_path_buf(),
             message,
-        })
+        })?;
+        Ok(config.with_source_text(text, &path.display().to_string()))
+    }
+
+    /// This config, remembering that it was parsed from `text`, which `origin` names in messages
+    /// (a file's path; [`Config::from_file`] sets both): [`Config::locate`] then finds a key's line.
+    pub fn with_source_text(mut self, text: impl Into<String>, origin: &str) -> Self {
+        self.source = ConfigSource(Some(Arc::new(SourceText {
+            origin: origin.to_owned(),
+            text: text.into(),
+        })));
+        self
+    }
+
+    /// `error` with the config's origin and the line of the key it names, where it is an unknown
+    /// key of a section that its owner parses (`[map] max_point = …`, a dataset reader's key) and
+    /// the config knows its text ([`Config::from_file`], [`Config::with_source_text`]); other
+    /// errors come back unchanged. [`Pipeline::from_config`](crate::pipeline::Pipeline::from_config)
+    /// does this itself; call it for what is built from the config elsewhere (the dataset, the
+    /// query segmenter).
+    pub fn locate(&self, error: CoreError) -> CoreError {
+        match &self.source.0 {
+            Some(source) => with_config_text_line(error, &source.text, &source.origin),
+            None => error,
+        }
     }
 
     /// Parses config text; the error is the parser's message.
@@ -98,22 +144,10 @@ impl Config {
     }
 }
 
-/// `error` with the config file and line of the key it names, where it is an unknown key of a
-/// stage's section (`[map] max_point = …`): the stage parses its own parameters from a table that
-/// no longer knows its lines, so the location is found again in the file the config came from.
-/// Other errors, and keys the file does not hold on a line of their own, come back unchanged.
-pub fn with_config_line(error: CoreError, path: &Path) -> CoreError {
-    let text = std::fs::read_to_string(path).ok();
-    with_config_text_line(
-        error,
-        text.as_deref().unwrap_or(""),
-        &path.display().to_string(),
-    )
-}
-
-/// [`with_config_line`] for a config given as TOML `text` rather than a file (Python's
-/// `vlem.Pipeline("[map]\n…")`); `origin` names it in the message.
-pub fn with_config_text_line(error: CoreError, text: &str, origin: &str) -> CoreError {
+/// `error` with `origin` and the line of `text` that holds the key it names, where it is an
+/// unknown key of a section its owner parses (`[map] max_point = …`); other errors, and keys the
+/// text does not hold on a line of their own, come back unchanged.
+fn with_config_text_line(error: CoreError, text: &str, origin: &str) -> CoreError {
     let CoreError::InvalidParams {
         section,
         name,
@@ -436,7 +470,7 @@ mod tests {
         std::fs::write(
             &path,
             "[dataset]\nstride = 1\n\n[map]\nkind = \"point-cloud\"\nmax_point = 5\n\
-             [tracker.volume]\nmax_point = 1\n",
+             [tracker]\nkind = \"odometry\"\n[tracker.volume]\nmax_point = 1\n",
         )
         .unwrap();
         let error = CoreError::InvalidParams {
@@ -444,7 +478,7 @@ mod tests {
             name: "point-cloud".into(),
             message: "unknown field `max_point`, expected one of `max_points`".into(),
         };
-        let located = with_config_line(error, &path).to_string();
+        let located = Config::from_file(&path).unwrap().locate(error).to_string();
         assert!(
             located.ends_with(&format!("(config {}, line 6)", path.display())),
             "{located}"
@@ -460,9 +494,23 @@ mod tests {
             capability: "y",
         };
         assert!(matches!(
-            with_config_line(other, &path),
+            Config::from_file(&path).unwrap().locate(other),
             CoreError::Unsupported { .. }
         ));
+        // A config that does not know its text leaves errors as they are.
+        let error = || CoreError::InvalidParams {
+            section: "map".into(),
+            name: "point-cloud".into(),
+            message: "unknown field `max_point`".into(),
+        };
+        let text = std::fs::read_to_string(&path).unwrap();
+        let unlocated = Config::from_toml(&text).unwrap().locate(error());
+        assert_eq!(unlocated.to_string(), error().to_string());
+        // Equality ignores the source.
+        assert_eq!(
+            Config::from_toml(&text).unwrap(),
+            Config::from_file(&path).unwrap()
+        );
     }
 
     #[test]

@@ -325,9 +325,14 @@ impl Pipeline {
     /// Builds every stage the config names, through the registry.
     ///
     /// # Errors
-    /// Unknown implementation names, invalid parameters, an encoder that needs regions without a
+    /// Unknown implementation names, invalid parameters (an unknown key located on its line where
+    /// the config knows its text: [`Config::locate`]), an encoder that needs regions without a
     /// `[proposer]`, or an encoder and map that disagree on the embedding dimension.
     pub fn from_config(config: &Config, ctx: &BuildContext) -> Result<Self> {
+        Self::build_from_config(config, ctx).map_err(|e| config.locate(e))
+    }
+
+    fn build_from_config(config: &Config, ctx: &BuildContext) -> Result<Self> {
         let registry = Registry::global()?;
         let tracker = registry.build_tracker(&config.tracker, ctx)?;
         let encoder = config

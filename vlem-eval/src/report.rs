@@ -419,7 +419,8 @@ fn open_labelled(input: &SemsegInput) -> Result<Box<dyn FrameSource>> {
         dataset_config.max_frames = input.max_frames;
     }
     let dir = vlem_datasets::dataset_folder(&input.config, &input.ctx, input.dataset.as_deref())?;
-    let mut source = vlem_datasets::open(&dataset_config, &dir)?;
+    let mut source =
+        vlem_datasets::open(&dataset_config, &dir).map_err(|e| input.config.locate(e))?;
     if source.is_empty() {
         return Err(EvalError::Setup {
             message: format!("{} has no frames", source.describe()),
@@ -491,7 +492,9 @@ pub fn semseg3d(
     let mut source = open_labelled(input)?;
     let snapshot = vlem_core::read_map_file(map)?;
     let encoder = match (&input.config.encoder, &snapshot.metadata.encoder) {
-        (Some(stage), _) => Registry::global()?.build_encoder(stage, &input.ctx)?,
+        (Some(stage), _) => Registry::global()?
+            .build_encoder(stage, &input.ctx)
+            .map_err(|e| input.config.locate(e))?,
         (None, Some(_)) => {
             vlem_query::answer::encoder_for_map(&snapshot.metadata, &map.display().to_string())?
         }
@@ -647,9 +650,14 @@ pub fn semseg2d(
         });
     };
     let registry = Registry::global()?;
-    let encoder = registry.build_encoder(stage, &input.ctx)?;
+    let located = |e| input.config.locate(e);
+    let encoder = registry.build_encoder(stage, &input.ctx).map_err(located)?;
     let proposer = match &input.config.proposer {
-        Some(stage) if encoder.needs_regions() => Some(registry.build_proposer(stage, &input.ctx)?),
+        Some(stage) if encoder.needs_regions() => Some(
+            registry
+                .build_proposer(stage, &input.ctx)
+                .map_err(located)?,
+        ),
         None if encoder.needs_regions() => {
             return Err(EvalError::Setup {
                 message: format!(

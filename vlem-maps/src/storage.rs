@@ -6,9 +6,13 @@
 
 #[cfg(feature = "candle")]
 mod device;
+// The table that chooses host or device storage: the point-cloud and voxel maps' (the segment map
+// keeps its rows on the host).
+#[cfg(any(feature = "point-cloud", feature = "voxel"))]
 mod table;
 mod wide;
 
+#[cfg(any(feature = "point-cloud", feature = "voxel"))]
 pub(crate) use table::Table;
 
 #[cfg(feature = "candle")]

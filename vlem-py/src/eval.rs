@@ -76,7 +76,7 @@ fn semseg_input(
         Ok(path) if path.is_file() => path.display().to_string(),
         _ => "the config".to_owned(),
     };
-    let (config, ctx, _) = load_config(config, config_dir)?;
+    let (config, ctx) = load_config(config, config_dir)?;
     let classes = parse_classes(classes)?;
     let prompts = match prompts {
         None => BTreeMap::new(),

@@ -118,8 +118,6 @@ pub struct PyPipeline {
     live: LiveMap,
     config: Config,
     ctx: BuildContext,
-    /// Where the config came from: a dataset reader's unknown key is found at `run`.
-    origin: ConfigOrigin,
     report: Arc<Mutex<Option<RunReport>>>,
 }
 
@@ -138,30 +136,13 @@ fn busy(slot: &Slot) -> PyResult<std::sync::MutexGuard<'_, Option<Pipeline>>> {
     }
 }
 
-/// Where a config came from, to point a stage's unknown key at its line.
-pub(crate) enum ConfigOrigin {
-    File(PathBuf),
-    Text(String),
-    /// A dict: its TOML form has no lines the user wrote.
-    Dict,
-}
-
-impl ConfigOrigin {
-    /// `error` with the file (or text) and line of the stage key it names, where it names one.
-    pub(crate) fn locate(&self, error: vlem_core::CoreError) -> vlem_core::CoreError {
-        match self {
-            Self::File(path) => vlem_core::config::with_config_line(error, path),
-            Self::Text(text) => vlem_core::config::with_config_text_line(error, text, "text"),
-            Self::Dict => error,
-        }
-    }
-}
-
-/// The config and build context `config` names, and where it came from.
+/// The config and build context `config` names. A file or TOML text is kept with the config, so
+/// that a key a stage parses is found on its line ([`Config::locate`]); a dict's TOML form has no
+/// lines the user wrote.
 pub(crate) fn load_config(
     config: &Bound<'_, PyAny>,
     config_dir: Option<PathBuf>,
-) -> PyResult<(Config, BuildContext, ConfigOrigin)> {
+) -> PyResult<(Config, BuildContext)> {
     let text_context = |text: &str| -> PyResult<(Config, BuildContext)> {
         let config = Config::from_toml(text).map_err(errors::ConfigError::new_err)?;
         let dir = match config_dir.clone() {
@@ -172,8 +153,7 @@ pub(crate) fn load_config(
         Ok((config, ctx))
     };
     if config.is_instance_of::<PyDict>() {
-        let (config, ctx) = text_context(&dict_to_toml(config, "config")?)?;
-        return Ok((config, ctx, ConfigOrigin::Dict));
+        return text_context(&dict_to_toml(config, "config")?);
     }
     let is_path_like = config.hasattr("__fspath__")?;
     if let Ok(text) = config.extract::<String>()
@@ -182,7 +162,7 @@ pub(crate) fn load_config(
         let path = PathBuf::from(&text);
         if !(path.is_file() || text.trim_end().ends_with(".toml") && !text.contains('\n')) {
             let (config, ctx) = text_context(&text)?;
-            return Ok((config, ctx, ConfigOrigin::Text(text)));
+            return Ok((config.with_source_text(text, "text"), ctx));
         }
     }
     let path: PathBuf = config.extract().map_err(|_| {
@@ -191,8 +171,7 @@ pub(crate) fn load_config(
             config.get_type()
         ))
     })?;
-    let (config, ctx) = vlem_core::load_config(&path).map_err(errors::core)?;
-    Ok((config, ctx, ConfigOrigin::File(path)))
+    vlem_core::load_config(&path).map_err(errors::core)
 }
 
 /// A progress event as a dict.
@@ -349,15 +328,13 @@ impl PyPipeline {
     #[new]
     #[pyo3(signature = (config, *, config_dir = None))]
     fn new(config: &Bound<'_, PyAny>, config_dir: Option<PathBuf>) -> PyResult<Self> {
-        let (config, ctx, origin) = load_config(config, config_dir)?;
-        let pipeline =
-            Pipeline::from_config(&config, &ctx).map_err(|e| errors::core(origin.locate(e)))?;
+        let (config, ctx) = load_config(config, config_dir)?;
+        let pipeline = Pipeline::from_config(&config, &ctx).map_err(errors::core)?;
         Ok(Self {
             live: pipeline.live(),
             pipeline: Arc::new(Mutex::new(Some(pipeline))),
             config,
             ctx,
-            origin,
             report: Arc::new(Mutex::new(None)),
         })
     }
@@ -405,7 +382,7 @@ impl PyPipeline {
             dataset_config.max_frames = max_frames;
         }
         let mut source = vlem_datasets::open(&dataset_config, &dir)
-            .map_err(|e| errors::core(self.origin.locate(e)))?;
+            .map_err(|e| errors::core(self.config.locate(e)))?;
         if let Some(bar) = &progress
             && bar.hasattr("update")?
             && bar.getattr("total").is_ok_and(|t| t.is_none())

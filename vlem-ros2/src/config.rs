@@ -208,7 +208,7 @@ impl Ros2Config {
     ///
     /// # Errors
     /// [`CoreError::InvalidParams`] naming an unknown key or a value of the wrong type; front-ends
-    /// locate it on its line with [`vlem_core::config::with_config_line`].
+    /// locate it on its line with [`vlem_core::Config::locate`].
     pub fn from_table(section: Option<&toml::Table>) -> vlem_core::Result<Self> {
         let Some(section) = section else {
             return Ok(Self::default());
@@ -236,9 +236,11 @@ mod tests {
         assert_eq!(Ros2Config::from_table(None).unwrap(), Ros2Config::default());
 
         let text = "[ros2]\nqueue = 5\nnode_nmae = \"x\"\n";
-        let config = vlem_core::Config::from_toml(text).unwrap();
+        let config = vlem_core::Config::from_toml(text)
+            .unwrap()
+            .with_source_text(text, "vlem.toml");
         let err = Ros2Config::from_table(config.ros2.as_ref()).unwrap_err();
-        let err = vlem_core::config::with_config_text_line(err, text, "vlem.toml").to_string();
+        let err = config.locate(err).to_string();
         assert!(
             err.starts_with("[ros2]: unknown field `node_nmae`"),
             "{err}"

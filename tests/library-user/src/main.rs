@@ -1,6 +1,7 @@
-//! A library user's program: it names only `vlem`, builds a pipeline from a TOML text, maps a
-//! generated scene, queries the live map, and checks that the features it asked for, and only
-//! those, are linked. `.ci/run` runs it; it exits non-zero when a check fails.
+//! A library user's program: it names only `vlem`, builds a pipeline from a TOML text (a typo in
+//! it refused on its line), maps a generated scene, queries the live map, and checks that the
+//! features it asked for, and only those, are linked. `.ci/run` runs it; it exits non-zero when a
+//! check fails.
 
 use std::process::ExitCode;
 
@@ -58,6 +59,31 @@ fn run() -> Result<(), String> {
     };
     if !err.contains("feature") {
         return Err(format!("the unknown-map error names no feature: {err}"));
+    }
+
+    // A key the map does not take is refused, on its line of the text the config came from.
+    let typo = CONFIG.replace(
+        "kind = \"point-cloud\"",
+        "kind = \"point-cloud\"\nmax_point = 5",
+    );
+    let err = match Config::from_toml(&typo) {
+        Ok(config) => match Pipeline::from_config(
+            &config.with_source_text(typo.as_str(), "user.toml"),
+            &BuildContext::default(),
+        ) {
+            Ok(_) => return Err("a [map] typo was accepted".to_owned()),
+            Err(e) => e.to_string(),
+        },
+        Err(e) => return Err(e),
+    };
+    let line = typo
+        .lines()
+        .position(|l| l == "max_point = 5")
+        .map_or(0, |i| i + 1);
+    if !(err.contains("unknown field `max_point`")
+        && err.ends_with(&format!("(config user.toml, line {line})")))
+    {
+        return Err(format!("the typo's error does not name its line: {err}"));
     }
 
     let config = Config::from_toml(CONFIG)?;

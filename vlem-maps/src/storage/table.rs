@@ -116,7 +116,8 @@ impl Table {
         }
     }
 
-    /// Keeps the first `rows` rows.
+    /// Keeps the first `rows` rows (the point cloud's downsampling; the voxel map never shrinks).
+    #[cfg(feature = "point-cloud")]
     pub(crate) fn truncate(&mut self, rows: usize) {
         match self {
             Self::Host(t) => t.truncate(rows),
