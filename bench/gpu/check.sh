@@ -153,8 +153,10 @@ if wanted 3; then
         sed 's|^\[pipeline\]|[pipeline]\nstages = "serial"|' "$OUT/$mode-cuda-clip.toml" \
             >"$OUT/$mode-serial-cuda-clip.toml"
     done
+    # CLIP's towers in half precision ([encoder] dtype), every frame embedded.
+    sed '/^kind = "clip"/a dtype = "f16"' "$OUT/offline-cuda-clip.toml" >"$OUT/offline-f16-cuda-clip.toml"
     for run in e2e:realtime e2e-serial:realtime-serial e2e-offline:offline \
-        e2e-offline-serial:offline-serial; do
+        e2e-offline-serial:offline-serial e2e-offline-f16:offline-f16; do
         name=${run%%:*}
         say "   ${run#*:}:"
         if timeout 180 "$G/bin/vlem" run --config "$OUT/${run#*:}-cuda-clip.toml" \

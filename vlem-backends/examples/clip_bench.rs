@@ -60,7 +60,7 @@ fn main() -> anyhow::Result<()> {
     }
     let threads = std::env::var("RAYON_NUM_THREADS").unwrap_or_else(|_| "(all)".to_owned());
     let device = vlem_backends::ComputeDevice::from_env("VLEM_BENCH_DEVICE")?.open()?;
-    let model = ClipModel::load(&dir, &device)?;
+    let model = ClipModel::load(&dir, &device, vlem_backends::ModelDtype::F32)?;
     let size = model.image_size();
     for batch in batches {
         // A fixed pseudo-random pattern in the range of normalised pixels.

@@ -58,7 +58,9 @@ mod device;
 mod error;
 
 pub use allocator::{KEEP_FREED_MEMORY_ENV, keep_freed_memory};
-pub use device::{CUDA_BUILD_HINT, ComputeDevice, DeviceMemoryPeak, kernels_compute_capability};
+pub use device::{
+    CUDA_BUILD_HINT, ComputeDevice, DeviceMemoryPeak, ModelDtype, kernels_compute_capability,
+};
 pub use error::{BackendError, MINILM_INSTALL_HINT};
 
 #[cfg(feature = "label-text")]

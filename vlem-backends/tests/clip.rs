@@ -17,6 +17,7 @@ use std::path::{Path, PathBuf};
 use std::sync::OnceLock;
 
 use serde::Deserialize;
+use vlem_backends::ModelDtype;
 use vlem_backends::clip::model::Activation;
 use vlem_backends::clip::{ClipEncoder, ClipEncoderConfig, ClipModel};
 use vlem_backends::region_crops::{self, Background, CLIP_MEAN, CLIP_STD};
@@ -111,7 +112,7 @@ fn normalised(v: &[f32]) -> Vec<f32> {
 /// Checks one model against its goldens and returns the worst error seen.
 fn check_model(name: &str) -> f32 {
     let g = &goldens().models[name];
-    let model = ClipModel::load(&model_dir(name), &common::device()).unwrap();
+    let model = ClipModel::load(&model_dir(name), &common::device(), ModelDtype::F32).unwrap();
     let config = model.config();
     assert_eq!(model.projection_dim(), g.projection_dim);
     assert_eq!(config.text.eos_token_id, g.eos_token_id_in_config);
@@ -175,7 +176,8 @@ fn gelu_model_with_real_eos_matches_transformers() {
 #[test]
 fn goldens_exercise_truncation_and_the_end_token() {
     let g = &goldens().models["tiny-gelu"];
-    let model = ClipModel::load(&model_dir("tiny-gelu"), &common::device()).unwrap();
+    let model =
+        ClipModel::load(&model_dir("tiny-gelu"), &common::device(), ModelDtype::F32).unwrap();
     let max = model.config().text.max_position_embeddings;
     let long = g.texts.iter().map(|t| t.ids.len()).max().unwrap();
     assert_eq!(
@@ -191,10 +193,48 @@ fn goldens_exercise_truncation_and_the_end_token() {
 
 #[test]
 fn image_features_refuse_a_wrong_pixel_count() {
-    let model = ClipModel::load(&model_dir("tiny-gelu"), &common::device()).unwrap();
+    let model =
+        ClipModel::load(&model_dir("tiny-gelu"), &common::device(), ModelDtype::F32).unwrap();
     let err = model.image_features(&[0.0; 10], 1).unwrap_err().to_string();
     assert!(err.contains("10 values for 1 image(s) of 3x32x32"), "{err}");
     assert!(model.image_features(&[], 0).unwrap().is_empty());
+}
+
+/// The least cosine similarity between `model`'s embeddings and the f32 goldens (texts in one
+/// batch, images in one batch).
+fn least_cosine_to_goldens(name: &str, model: &ClipModel) -> f32 {
+    let g = &goldens().models[name];
+    let texts: Vec<&str> = g.texts.iter().map(|t| t.text.as_str()).collect();
+    let text = model.text_features(&texts).unwrap();
+    let pixels = golden_pixels();
+    let images = model.image_features(&pixels, g.images.len()).unwrap();
+    let pairs = text
+        .iter()
+        .zip(g.texts.iter().map(|t| &t.features))
+        .chain(images.iter().zip(&g.images));
+    pairs
+        .map(|(e, want)| dot(&normalised(e), &normalised(want)))
+        .fold(1.0, f32::min)
+}
+
+/// Half precision: both towers in f16 and bf16 against the f32 goldens of transformers, as
+/// embeddings are compared (cosine). f16 keeps 11 significant bits, bf16 8: the bounds say so.
+#[test]
+fn half_precision_models_agree_with_the_f32_goldens() {
+    for name in ["tiny-quick-gelu", "tiny-gelu"] {
+        for (dtype, bound) in [(ModelDtype::F16, 0.9995), (ModelDtype::Bf16, 0.995)] {
+            let model = ClipModel::load(&model_dir(name), &common::device(), dtype).unwrap();
+            let least = least_cosine_to_goldens(name, &model);
+            println!("{name} {dtype:?}: least cosine to the f32 goldens {least:.6}");
+            assert!(least >= bound, "{name} {dtype:?}: cosine {least} < {bound}");
+        }
+        let f32_model = ClipModel::load(&model_dir(name), &common::device(), ModelDtype::F32);
+        assert!(least_cosine_to_goldens(name, &f32_model.unwrap()) > 0.99999);
+    }
+    // Through the encoder's config key.
+    let half = encoder_with("tiny-gelu", "dtype = \"f16\"");
+    let text = half.encode_text("a photo of a cat").unwrap();
+    assert!((dot(&text, &text) - 1.0).abs() < 1e-5);
 }
 
 fn encoder_with(name: &str, extra: &str) -> ClipEncoder {
@@ -526,7 +566,7 @@ fn weights_that_disagree_with_the_config_are_an_invalid_model_file() {
     let mut json: serde_json::Value = serde_json::from_str(&config).unwrap();
     json["vision_config"]["num_hidden_layers"] = 2.into();
     std::fs::write(dir.path().join("config.json"), json.to_string()).unwrap();
-    let err = ClipModel::load(dir.path(), &common::device())
+    let err = ClipModel::load(dir.path(), &common::device(), ModelDtype::F32)
         .unwrap_err()
         .to_string();
     assert!(err.contains("model.safetensors"), "{err}");

@@ -31,6 +31,7 @@
 //! # templates = ["a photo of a {}."]
 //! # batch_size = 16         # crops per forward pass
 //! # device = "cpu"          # "cuda", "cuda:N" with feature `cuda`
+//! # dtype = "f32"           # "f16", "bf16": the towers in half precision
 //! ```
 
 pub mod model;
@@ -75,6 +76,9 @@ pub struct ClipEncoderConfig {
     pub batch_size: usize,
     /// Where the model runs: `"cpu"` (default), `"cuda"` or `"cuda:N"` (feature `cuda`).
     pub device: crate::ComputeDevice,
+    /// What both towers compute in: `"f32"` (default), `"f16"` or `"bf16"` (for a GPU; on the CPU
+    /// half precision runs through candle's plain ops, slower than f32's fused kernels).
+    pub dtype: crate::ModelDtype,
 }
 
 impl Default for ClipEncoderConfig {
@@ -86,6 +90,7 @@ impl Default for ClipEncoderConfig {
             templates: crate::prompts::default_templates(),
             batch_size: DEFAULT_BATCH_SIZE,
             device: crate::ComputeDevice::Cpu,
+            dtype: crate::ModelDtype::F32,
         }
     }
 }
@@ -203,7 +208,7 @@ impl ClipEncoder {
     ) -> Result<Self, BackendError> {
         let configured = config.model_dir.as_deref().map(|p| ctx.resolve(p));
         let dir = locate_model_dir(configured.as_deref())?;
-        let model = ClipModel::load(&dir, &config.device.open()?)?;
+        let model = ClipModel::load(&dir, &config.device.open()?, config.dtype)?;
         let (mean, std) = read_normalisation(&dir)?;
         let size =
             u32::try_from(model.image_size()).map_err(|_| BackendError::InvalidModelFile {

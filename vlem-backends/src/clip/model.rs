@@ -20,6 +20,7 @@ use candle_core::{D, DType, Device, IndexOp, Module, Tensor};
 use candle_nn::{Embedding, LayerNorm, VarBuilder};
 use tokenizers::{Tokenizer, TruncationParams};
 
+use crate::ModelDtype;
 use crate::attention::Scores;
 use crate::error::BackendError;
 use crate::hf_config::{HfConfigError, Section};
@@ -514,7 +515,7 @@ impl TextTower {
         let mask: Vec<f32> = (0..len)
             .flat_map(|i| (0..len).map(move |j| if j > i { f32::NEG_INFINITY } else { 0.0 }))
             .collect();
-        let mask = Tensor::from_vec(mask, (len, len), ids.device())?;
+        let mask = Tensor::from_vec(mask, (len, len), ids.device())?.to_dtype(x.dtype())?;
         let mut x = x;
         for layer in &self.layers {
             x = layer.forward(&x, Some(&mask))?;
@@ -557,6 +558,8 @@ pub struct ClipModel {
     text: TextTower,
     tokenizer: Tokenizer,
     device: Device,
+    /// What the towers compute in; their f32 inputs are converted on the way in.
+    dtype: DType,
     dir: PathBuf,
 }
 
@@ -600,13 +603,14 @@ pub fn check_model_dir(dir: &Path, origin: String) -> Result<PathBuf, BackendErr
 
 impl ClipModel {
     /// Loads the model in `dir` (`config.json`, `model.safetensors`, `tokenizer.json`) onto
-    /// `device` (see [`crate::ComputeDevice::open`]), in f32 (half-precision weights are widened).
+    /// `device` (see [`crate::ComputeDevice::open`]), its weights converted to `dtype`, the type
+    /// both towers compute in (their inputs and outputs stay f32).
     ///
     /// # Errors
     /// [`BackendError::MissingModelFiles`] when a file is missing,
     /// [`BackendError::InvalidModelFile`] when one cannot be read or does not describe a CLIP
     /// model (wrong `model_type`, tensor names or shapes that disagree with `config.json`).
-    pub fn load(dir: &Path, device: &Device) -> Result<Self, BackendError> {
+    pub fn load(dir: &Path, device: &Device, dtype: ModelDtype) -> Result<Self, BackendError> {
         let dir = check_model_dir(dir, "the caller".to_owned())?;
         let config_path = dir.join("config.json");
         let text = crate::model_files::read_text(&config_path)?;
@@ -647,7 +651,7 @@ impl ClipModel {
                 reason: format!("cannot read the weights: {e}"),
             }
         })?;
-        let vb = VarBuilder::from_tensors(weights, DType::F32, &device);
+        let vb = VarBuilder::from_tensors(weights, dtype.candle(), &device);
         let mismatch = |e: candle_core::Error| BackendError::InvalidModelFile {
             path: weights_path.clone(),
             reason: format!("the weights do not match config.json: {e}"),
@@ -661,6 +665,7 @@ impl ClipModel {
             text,
             tokenizer,
             device,
+            dtype: dtype.candle(),
             dir,
         })
     }
@@ -772,8 +777,14 @@ impl ClipModel {
                     c.image_size,
                 ),
                 &self.device,
-            )?;
-            out.extend(self.vision.forward(&x)?.to_vec2::<f32>()?);
+            )?
+            .to_dtype(self.dtype)?;
+            out.extend(
+                self.vision
+                    .forward(&x)?
+                    .to_dtype(DType::F32)?
+                    .to_vec2::<f32>()?,
+            );
         }
         Ok(out)
     }
@@ -825,7 +836,10 @@ impl ClipModel {
         }
         let run = || -> candle_core::Result<Vec<Vec<f32>>> {
             let x = Tensor::from_vec(flat, (ids.len(), len), &self.device)?;
-            self.text.forward(&x, &pooled)?.to_vec2::<f32>()
+            self.text
+                .forward(&x, &pooled)?
+                .to_dtype(DType::F32)?
+                .to_vec2::<f32>()
         };
         run().map_err(|e| BackendError::Inference {
             what: what(),
@@ -917,7 +931,7 @@ mod tests {
     #[test]
     fn grouping_images_does_not_change_their_features() {
         let dir = Path::new(env!("CARGO_MANIFEST_DIR")).join("goldens/clip/tiny-gelu");
-        let model = ClipModel::load(&dir, &Device::Cpu).unwrap();
+        let model = ClipModel::load(&dir, &Device::Cpu, ModelDtype::F32).unwrap();
         let pixels: Vec<f32> = (0..5 * 3 * 32 * 32)
             .map(|i| ((i * 37 % 101) as f32 / 50.0) - 1.0)
             .collect();

@@ -15,11 +15,13 @@ use serde::{Deserialize, Deserializer};
 
 use crate::error::BackendError;
 
+mod dtype;
 // Opening a device needs candle: every candle backend brings it, and `candle` alone does too.
 mod memory;
 #[cfg(feature = "candle")]
 mod open;
 
+pub use dtype::ModelDtype;
 pub use memory::DeviceMemoryPeak;
 
 /// How to get a build that can run on a GPU, for the messages that say this one cannot.
