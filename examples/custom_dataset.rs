@@ -5,8 +5,8 @@
 //! paths per line (relative to the folder; `#` starts a comment), and the camera as an Open3D
 //! intrinsics JSON. Its one setting of its own is the list's name (`[dataset] list`, default
 //! `frames.txt`); the shared keys (`stride`, `max_frames`, `depth_scale`) come from core's
-//! `DatasetConfig`. Nothing else in vlem changes: `vlem::datasets::open` finds the reader by name or
-//! by its probe, and an unknown key of its own is refused naming the key and the line.
+//! `DatasetConfig`. Nothing else in vlem changes: `vlem::datasets::open` finds the reader by name
+//! or by its probe, and an unknown key of its own is refused naming the key and the line.
 //!
 //! It lists the 30 committed living-room frames of `data/` in a temporary folder, maps the first
 //! ten with the `odometry` tracker (the format has no poses) and the weight-free `colour-names`

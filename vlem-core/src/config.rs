@@ -108,7 +108,8 @@ impl Config {
     }
 
     /// This config, remembering that it was parsed from `text`, which `origin` names in messages
-    /// (a file's path; [`Config::from_file`] sets both): [`Config::locate`] then finds a key's line.
+    /// (a file's path; [`Config::from_file`] sets both): [`Config::locate`] then finds a key's
+    /// line.
     pub fn with_source_text(mut self, text: impl Into<String>, origin: &str) -> Self {
         self.source = ConfigSource(Some(Arc::new(SourceText {
             origin: origin.to_owned(),
@@ -120,9 +121,9 @@ impl Config {
     /// `error` with the config's origin and the line of the key it names, where it is an unknown
     /// key of a section that its owner parses (`[map] max_point = …`, a dataset reader's key) and
     /// the config knows its text ([`Config::from_file`], [`Config::with_source_text`]); other
-    /// errors come back unchanged. [`Pipeline::from_config`](crate::pipeline::Pipeline::from_config)
-    /// does this itself; call it for what is built from the config elsewhere (the dataset, the
-    /// query segmenter).
+    /// errors come back unchanged.
+    /// [`Pipeline::from_config`](crate::pipeline::Pipeline::from_config) does this itself; call it
+    /// for what is built from the config elsewhere (the dataset, the query segmenter).
     pub fn locate(&self, error: CoreError) -> CoreError {
         match &self.source.0 {
             Some(source) => with_config_text_line(error, &source.text, &source.origin),

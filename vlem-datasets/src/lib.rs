@@ -14,8 +14,9 @@
 //! `[dataset]` keys (parsed by the reader, unknown keys refused) and a probe for `kind = "auto"`;
 //! a reader in another crate does the same and is found alike. [`open`] builds the reader for a
 //! `[dataset]` config, detecting it with [`detect_kind`] when `kind = "auto"`. Readers list the
-//! files when opened and decode a frame only when it is asked for. Every error ([`DatasetError`]) names the file involved; through [`FrameSource`] it
-//! arrives as [`vlem_core::CoreError::Dataset`].
+//! files when opened and decode a frame only when it is asked for. Every error ([`DatasetError`])
+//! names the file involved; through [`FrameSource`] it arrives as
+//! [`vlem_core::CoreError::Dataset`].
 //!
 //! Common `[dataset]` settings: frame `i` of a reader is frame `i * stride` of the recording, at
 //! most `max_frames` frames are used, `depth_scale` overrides the layout's default, and a frame's

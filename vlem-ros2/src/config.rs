@@ -12,9 +12,9 @@ use vlem_datasets::rosbag2::{
 /// `[ros2]`: what the live ROS 2 node (`vlem ros2`, feature `ros2`) subscribes to and publishes.
 ///
 /// Plain data; the node validates it when it starts. Input topic defaults are the RealSense
-/// wrapper's with depth aligned to colour. An image topic whose name ends in `/compressed` or `/compressedDepth`
-/// carries `sensor_msgs/msg/CompressedImage` (image_transport's convention), any other
-/// `sensor_msgs/msg/Image`.
+/// wrapper's with depth aligned to colour. An image topic whose name ends in `/compressed` or
+/// `/compressedDepth` carries `sensor_msgs/msg/CompressedImage` (image_transport's convention),
+/// any other `sensor_msgs/msg/Image`.
 #[derive(Clone, Debug, Deserialize, Serialize, PartialEq)]
 #[serde(deny_unknown_fields)]
 pub struct Ros2Config {

@@ -21,8 +21,8 @@ pub enum SyntheticNoise {
 /// `[dataset.synthetic]`: the procedural labelled RGB-D scene of `kind = "synthetic"`.
 ///
 /// Plain data; [`SyntheticScene::new`](super::SyntheticScene::new) validates it (and names the
-/// key of a bad value). Everything the
-/// scene holds, and its camera path, follows from these values alone.
+/// key of a bad value). Everything the scene holds, and its camera path, follows from these values
+/// alone.
 ///
 /// ```toml
 /// [dataset]
