@@ -1,5 +1,6 @@
 //! Images per second of the CLIP image tower (`ClipModel::image_features`) on candle, on the CPU
-//! or, with `VLEM_BENCH_DEVICE=cuda` in a build with feature `cuda`, a GPU.
+//! or, with `VLEM_BENCH_DEVICE=cuda` in a build with feature `cuda`, a GPU; in half precision
+//! with `VLEM_BENCH_DTYPE=f16` or `bf16`.
 //!
 //! ```text
 //! python3 bench/clip/make_random_b16.py /tmp/clip-vit-b16-random   # random ViT-B/16, HF layout
@@ -60,7 +61,8 @@ fn main() -> anyhow::Result<()> {
     }
     let threads = std::env::var("RAYON_NUM_THREADS").unwrap_or_else(|_| "(all)".to_owned());
     let device = vlem_backends::ComputeDevice::from_env("VLEM_BENCH_DEVICE")?.open()?;
-    let model = ClipModel::load(&dir, &device, vlem_backends::ModelDtype::F32)?;
+    let dtype = vlem_backends::ModelDtype::from_env("VLEM_BENCH_DTYPE")?;
+    let model = ClipModel::load(&dir, &device, dtype)?;
     let size = model.image_size();
     for batch in batches {
         // A fixed pseudo-random pattern in the range of normalised pixels.

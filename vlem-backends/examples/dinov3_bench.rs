@@ -11,7 +11,8 @@
 //! ```
 //! Arguments: the input short sides to time (comma-separated, multiples of 16; default 448),
 //! and the timed frames per size (default 3, after one warm-up frame). `VLEM_BENCH_DEVICE=cuda`
-//! runs it on a GPU (build with feature `cuda`).
+//! runs it on a GPU (build with feature `cuda`); `VLEM_BENCH_DTYPE=f16` or `bf16` in half
+//! precision.
 
 use std::collections::HashMap;
 use std::time::Instant;
@@ -108,7 +109,12 @@ fn backbone(device: &Device) -> Result<Dinov3Backbone> {
         put(&mut t, format!("{l}.layer_scale2.lambda1"), &[h], 1e-5, 0.0)?;
     }
     put_norm(&mut t, "norm", h)?;
-    Ok(Dinov3Backbone::from_tensors(&c, t, device)?)
+    Ok(Dinov3Backbone::from_tensors(&c, t, device, dtype()?)?)
+}
+
+/// The type to time: `VLEM_BENCH_DTYPE` (`f32` unless set).
+fn dtype() -> Result<vlem_backends::ModelDtype> {
+    Ok(vlem_backends::ModelDtype::from_env("VLEM_BENCH_DTYPE")?)
 }
 
 /// The dino.txt heads in the released checkpoint's layout.
@@ -154,7 +160,7 @@ fn heads(vocab: usize, device: &Device) -> Result<DinoTxtHeads> {
     }
     put_norm(&mut t, &format!("{tb}.ln_final"), d)?;
     put_linear(&mut t, "text_model.head.linear_projection", d, 2048, false)?;
-    Ok(DinoTxtHeads::from_tensors(t, 16, None, device)?)
+    Ok(DinoTxtHeads::from_tensors(t, 16, None, device, dtype()?)?)
 }
 
 /// A 640 × 480 frame of smooth gradients.

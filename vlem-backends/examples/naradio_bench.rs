@@ -2,7 +2,7 @@
 //! last block and the SigLIP adaptor, at full ViT-B/16 and ViT-L/16 size with random weights
 //! (speed does not depend on the values). The frame is fed as RayFronts feeds it: 640 x 480, a
 //! 40 x 30 patch grid. Threads: set `RAYON_NUM_THREADS`; `VLEM_BENCH_DEVICE=cuda` runs it on a
-//! GPU (build with feature `cuda`).
+//! GPU (build with feature `cuda`); `VLEM_BENCH_DTYPE=f16` or `bf16` in half precision.
 //!
 //! ```text
 //! RAYON_NUM_THREADS=1 cargo run --release -p vlem-backends --features naradio --example naradio_bench -- [b|l|both] [iterations] [TEXT_DIR]
@@ -52,6 +52,7 @@ fn main() -> anyhow::Result<()> {
     let text_dir = args.get(3).map(std::path::PathBuf::from);
     let threads = std::env::var("RAYON_NUM_THREADS").unwrap_or_else(|_| "all".into());
     let device = vlem_backends::ComputeDevice::from_env("VLEM_BENCH_DEVICE")?.open()?;
+    let dtype = vlem_backends::ModelDtype::from_env("VLEM_BENCH_DTYPE")?;
     let sizes: Vec<(&str, RadioConfig)> = [
         ("B/16", config(768, 12, 12)),
         ("L/16", config(1024, 24, 16)),
@@ -65,7 +66,7 @@ fn main() -> anyhow::Result<()> {
     .collect();
     for (name, cfg) in sizes {
         // The SigLIP adaptor of RADIOv2.5: into SO400M's 1152-d space.
-        let model = RadioModel::random(cfg, 1536, 1152, &device)?;
+        let model = RadioModel::random(cfg, 1536, 1152, &device, dtype)?;
         let x = Tensor::rand(0f32, 1f32, (1, 3, 480, 640), &device)?;
         let last = LastBlock::Naclip {
             std: 7.0,
@@ -100,7 +101,8 @@ fn main() -> anyhow::Result<()> {
 /// The cost of one new query through the SigLIP SO400M text tower of the folder `dir` (made by
 /// `bench/naradio/make_random.py`): RayFronts' 80 templates, then a single template.
 fn time_query(dir: &std::path::Path, device: &candle_core::Device) -> anyhow::Result<()> {
-    let text = SiglipText::load(dir, device)?;
+    let dtype = vlem_backends::ModelDtype::from_env("VLEM_BENCH_DTYPE")?;
+    let text = SiglipText::load(dir, device, dtype)?;
     let query = "coffee machine";
     for templates in [IMAGENET_TEMPLATES.to_vec(), vec!["a photo of a {}."]] {
         let prompts: Vec<String> = templates.iter().map(|t| t.replace("{}", query)).collect();

@@ -44,25 +44,32 @@ impl Activation {
     }
 }
 
-/// Named tensors with checked shapes, widened to f32 and put on the model's device: the loading
-/// side of every module here.
+/// Named tensors with checked shapes, converted to the model's dtype and put on its device: the
+/// loading side of every module here.
 pub(crate) struct Weights {
     tensors: HashMap<String, Tensor>,
     device: Device,
+    dtype: DType,
 }
 
 impl Weights {
-    /// `tensors` (on any device), handed out on `device`.
-    pub(crate) fn new(tensors: HashMap<String, Tensor>, device: &Device) -> Self {
+    /// `tensors` (on any device, in any float type), handed out on `device` in `dtype`.
+    pub(crate) fn new(tensors: HashMap<String, Tensor>, device: &Device, dtype: DType) -> Self {
         Self {
             tensors,
             device: device.clone(),
+            dtype,
         }
     }
 
     /// The device the tensors are handed out on.
     pub(crate) fn device(&self) -> &Device {
         &self.device
+    }
+
+    /// The type the tensors are handed out in: the model's.
+    pub(crate) fn dtype(&self) -> DType {
+        self.dtype
     }
 
     pub(crate) fn contains(&self, name: &str) -> bool {
@@ -86,7 +93,7 @@ impl Weights {
                 t.dims()
             ));
         }
-        t.to_dtype(DType::F32)
+        t.to_dtype(self.dtype)
             .and_then(|t| t.to_device(&self.device))
             .map_err(|e| format!("tensor {name}: {e}"))
     }
@@ -198,19 +205,22 @@ pub fn rope_angles(grid_h: usize, grid_w: usize, head_dim: usize, theta: f64) ->
 }
 
 impl Rope {
+    /// The tables in `dtype`, the model's (computed in f32 like the reference, then converted).
     pub(crate) fn new(
-        grid_h: usize,
-        grid_w: usize,
+        (grid_h, grid_w): (usize, usize),
         head_dim: usize,
         theta: f64,
         device: &Device,
+        dtype: DType,
     ) -> candle_core::Result<Self> {
         let angles = rope_angles(grid_h, grid_w, head_dim, theta);
         let cos: Vec<f32> = angles.iter().map(|a| a.cos()).collect();
         let sin: Vec<f32> = angles.iter().map(|a| a.sin()).collect();
+        let table =
+            |v: Vec<f32>| Tensor::from_vec(v, (grid_h * grid_w, head_dim), device)?.to_dtype(dtype);
         Ok(Self {
-            cos: Tensor::from_vec(cos, (grid_h * grid_w, head_dim), device)?,
-            sin: Tensor::from_vec(sin, (grid_h * grid_w, head_dim), device)?,
+            cos: table(cos)?,
+            sin: table(sin)?,
         })
     }
 

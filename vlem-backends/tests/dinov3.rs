@@ -19,6 +19,7 @@ use std::path::{Path, PathBuf};
 use candle_core::{Device, Tensor};
 use serde_json::Value;
 use vlem_backends::BackendError;
+use vlem_backends::ModelDtype::{self, F32};
 use vlem_backends::dinov3::clip_bpe::{self, ClipBpe};
 use vlem_backends::dinov3::encoder::locate_files;
 use vlem_backends::dinov3::{DinoTxtHeads, Dinov3Backbone, Dinov3Encoder, Dinov3EncoderConfig};
@@ -70,7 +71,8 @@ fn backbone_matches_transformers_goldens() {
     let models = g["models"].as_object().unwrap();
     assert_eq!(models.len(), 2);
     for (name, model) in models {
-        let backbone = Dinov3Backbone::load(&goldens_dir().join(name), &common::device()).unwrap();
+        let backbone =
+            Dinov3Backbone::load(&goldens_dir().join(name), &common::device(), F32).unwrap();
         let registers = model["num_register_tokens"].as_u64().unwrap() as usize;
         let hidden = model["hidden_size"].as_u64().unwrap() as usize;
         assert_eq!(backbone.config().num_register_tokens, registers);
@@ -116,7 +118,8 @@ fn backbone_matches_transformers_goldens() {
 
 #[test]
 fn a_batch_equals_its_images_one_by_one() {
-    let backbone = Dinov3Backbone::load(&goldens_dir().join("tiny"), &common::device()).unwrap();
+    let backbone =
+        Dinov3Backbone::load(&goldens_dir().join("tiny"), &common::device(), F32).unwrap();
     let a = pixels(48, 80);
     let b = (pixels(48, 80) * -0.5).unwrap();
     let both = Tensor::cat(&[&a, &b], 0).unwrap();
@@ -135,7 +138,8 @@ fn a_batch_equals_its_images_one_by_one() {
 
 #[test]
 fn sides_must_be_multiples_of_the_patch() {
-    let backbone = Dinov3Backbone::load(&goldens_dir().join("tiny"), &common::device()).unwrap();
+    let backbone =
+        Dinov3Backbone::load(&goldens_dir().join("tiny"), &common::device(), F32).unwrap();
     let e = backbone.forward(&pixels(40, 64)).unwrap_err().to_string();
     assert!(e.contains("40x64"), "{e}");
     let grey = Tensor::zeros((1, 1, 32, 32), candle_core::DType::F32, &common::device()).unwrap();
@@ -163,8 +167,8 @@ fn in_memory_tensor_names_load_too() {
     let dir = tempfile::tempdir().unwrap();
     candle_core::safetensors::save(&renamed, dir.path().join("model.safetensors")).unwrap();
     std::fs::copy(src.join("config.json"), dir.path().join("config.json")).unwrap();
-    let a = Dinov3Backbone::load(&src, &common::device()).unwrap();
-    let b = Dinov3Backbone::load(dir.path(), &common::device()).unwrap();
+    let a = Dinov3Backbone::load(&src, &common::device(), F32).unwrap();
+    let b = Dinov3Backbone::load(dir.path(), &common::device(), F32).unwrap();
     let x = pixels(64, 64);
     assert_eq!(
         flat(&a.forward(&x).unwrap().tokens),
@@ -185,7 +189,7 @@ fn weights_that_disagree_with_the_config_are_named() {
         .unwrap()
         .replace("\"num_hidden_layers\": 2", "\"num_hidden_layers\": 3");
     std::fs::write(dir.path().join("config.json"), config).unwrap();
-    let e = Dinov3Backbone::load(dir.path(), &common::device()).unwrap_err();
+    let e = Dinov3Backbone::load(dir.path(), &common::device(), F32).unwrap_err();
     assert!(matches!(e, BackendError::InvalidModelFile { .. }), "{e:?}");
     assert!(e.to_string().contains("layer.2"), "{e}");
 }
@@ -194,7 +198,7 @@ fn weights_that_disagree_with_the_config_are_named() {
 fn missing_files_are_named_with_the_way_to_get_them() {
     let dir = tempfile::tempdir().unwrap();
     std::fs::write(dir.path().join("config.json"), "{}").unwrap();
-    let e = Dinov3Backbone::load(dir.path(), &common::device()).unwrap_err();
+    let e = Dinov3Backbone::load(dir.path(), &common::device(), F32).unwrap_err();
     let BackendError::MissingModelFiles { missing, .. } = &e else {
         panic!("{e:?}");
     };
@@ -228,6 +232,7 @@ fn tiny_dinotxt() -> (Dinov3Backbone, DinoTxtHeads, Value) {
     let backbone = Dinov3Backbone::load(
         &goldens_dir().join(g["backbone"].as_str().unwrap()),
         &common::device(),
+        F32,
     )
     .unwrap();
     let heads = DinoTxtHeads::load_pth(
@@ -235,6 +240,7 @@ fn tiny_dinotxt() -> (Dinov3Backbone, DinoTxtHeads, Value) {
         g["vision_heads"].as_u64().unwrap() as usize,
         Some(g["text_heads"].as_u64().unwrap() as usize),
         &common::device(),
+        F32,
     )
     .unwrap();
     (backbone, heads, g)
@@ -401,6 +407,43 @@ fn encoder_patch_grid_matches_meta_goldens() {
         .encode_image(&golden_image(width, height), &[])
         .unwrap();
     assert_eq!((e.width(), e.height(), e.dim()), (width, height, 32));
+}
+
+/// Half precision (`dtype = "f16" | "bf16"`): the backbone and both heads against Meta's f32
+/// goldens, per patch embedding and per text embedding, as embeddings are compared (cosine).
+#[test]
+fn half_precision_encoder_agrees_with_the_f32_goldens() {
+    let g = encoder_goldens();
+    let image = &g["image"];
+    let (width, height) = (
+        image["width"].as_u64().unwrap() as u32,
+        image["height"].as_u64().unwrap() as u32,
+    );
+    for dtype in [ModelDtype::F16, ModelDtype::Bf16] {
+        let encoder = Dinov3Encoder::from_config(
+            Dinov3EncoderConfig {
+                dtype,
+                ..tiny_encoder_config()
+            },
+            &BuildContext::default(),
+        )
+        .unwrap();
+        let (_, _, grid) = encoder.patch_grid(&golden_image(width, height)).unwrap();
+        let patches = common::least_row_cosine(&grid, &floats(&image["patch_grid"]), 32);
+        let mut texts = 1.0f32;
+        for case in g["prompts"].as_array().unwrap() {
+            let got = encoder.encode_text(case["text"].as_str().unwrap()).unwrap();
+            texts = texts.min(common::least_row_cosine(
+                &got,
+                &floats(&case["embedding"]),
+                got.len(),
+            ));
+        }
+        println!("{dtype:?}: least cosine, patches {patches:.6}, texts {texts:.6}");
+        let bound = common::half_precision_bound(dtype);
+        assert!(patches >= bound, "{dtype:?} patches: {patches} < {bound}");
+        assert!(texts >= bound, "{dtype:?} texts: {texts} < {bound}");
+    }
 }
 
 #[test]

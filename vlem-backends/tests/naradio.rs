@@ -18,6 +18,7 @@ use std::path::{Path, PathBuf};
 use candle_core::Tensor;
 use serde_json::Value;
 use vlem_backends::BackendError;
+use vlem_backends::ModelDtype::{self, F32};
 use vlem_backends::naradio::{
     GaussianGrid, LastBlock, NaradioEncoder, NaradioEncoderConfig, RadioModel, SiglipText,
     gaussian_prior,
@@ -103,7 +104,7 @@ fn usize_of(v: &Value) -> usize {
 #[test]
 fn trunk_matches_radio() {
     let g = goldens();
-    let model = RadioModel::load(&tiny_dir(), &common::device()).unwrap();
+    let model = RadioModel::load(&tiny_dir(), &common::device(), F32).unwrap();
     for case in g["trunk"].as_array().unwrap() {
         let (h, w) = (usize_of(&case["height"]), usize_of(&case["width"]));
         let x = model.condition(&pixels(h, w)).unwrap();
@@ -126,7 +127,7 @@ fn trunk_matches_radio() {
 fn naradio_matches_rayfronts() {
     let g = goldens();
     let std = g["gauss_std"].as_f64().unwrap();
-    let model = RadioModel::load(&tiny_dir(), &common::device()).unwrap();
+    let model = RadioModel::load(&tiny_dir(), &common::device(), F32).unwrap();
     let embed = model.config().embed_dim;
     let dim = model.adaptor_dim().unwrap();
     for case in g["naradio"].as_array().unwrap() {
@@ -167,6 +168,77 @@ fn naradio_matches_rayfronts() {
             }
         }
     }
+}
+
+/// Half precision (`dtype = "f16" | "bf16"`): the trunk with the NACLIP block and the adaptor
+/// against RayFronts' f32 goldens per patch (cosine), the global embedding, and the label
+/// embeddings through the encoder's key (trunk, adaptor and text tower in the same type).
+#[test]
+fn half_precision_agrees_with_the_f32_goldens() {
+    let g = goldens();
+    let std = g["gauss_std"].as_f64().unwrap();
+    let labels: Vec<&str> = g["text"]["labels"]
+        .as_array()
+        .unwrap()
+        .iter()
+        .map(|p| p.as_str().unwrap())
+        .collect();
+    for dtype in [ModelDtype::F16, ModelDtype::Bf16] {
+        let model = RadioModel::load(&tiny_dir(), &common::device(), dtype).unwrap();
+        let dim = model.adaptor_dim().unwrap();
+        let mut least = 1.0f32;
+        for case in g["naradio"].as_array().unwrap() {
+            let (h, w) = (usize_of(&case["height"]), usize_of(&case["width"]));
+            let x = model.condition(&pixels(h, w)).unwrap();
+            let last = LastBlock::Naclip {
+                std,
+                grid: GaussianGrid::Rayfronts,
+                reduced: false,
+            };
+            let out = model.forward(&x, last).unwrap();
+            assert_eq!(out.features.dtype(), dtype.candle());
+            let lang = model.adapt(&out.features).unwrap();
+            let want = chw_to_tokens(&floats(&case["lang"]), dim);
+            least = least.min(common::least_row_cosine(&flat32(&lang), &want, dim));
+            let global = model
+                .adapt(&model.adaptor_summary(&out.summary).unwrap())
+                .unwrap();
+            least = least.min(common::least_row_cosine(
+                &flat32(&global),
+                &floats(&case["global"]),
+                dim,
+            ));
+        }
+        let encoder = NaradioEncoder::from_config(
+            NaradioEncoderConfig {
+                dtype,
+                ..tiny_encoder_config()
+            },
+            &BuildContext::default(),
+        )
+        .unwrap();
+        let got = encoder.label_embeddings(&labels).unwrap().concat();
+        let texts = common::least_row_cosine(&got, &floats(&g["text"]["label_embeddings"]), dim);
+        // The encoder's own image path, against the f32 encoder's.
+        let image = RgbImage::new(
+            64,
+            48,
+            (0..64 * 48 * 3).map(|i| (i * 37 % 251) as u8).collect(),
+        )
+        .unwrap();
+        let (_, _, half) = encoder.patch_grid(&image).unwrap();
+        let (_, _, full) = tiny_encoder().patch_grid(&image).unwrap();
+        least = least.min(common::least_row_cosine(&half, &full, dim));
+        println!("{dtype:?}: least cosine, patches and global {least:.6}, labels {texts:.6}");
+        let bound = common::half_precision_bound(dtype);
+        assert!(least >= bound, "{dtype:?} image: {least} < {bound}");
+        assert!(texts >= bound, "{dtype:?} labels: {texts} < {bound}");
+    }
+}
+
+/// A tensor of any float type as f32 values.
+fn flat32(t: &Tensor) -> Vec<f32> {
+    flat(&t.to_dtype(candle_core::DType::F32).unwrap())
 }
 
 #[test]
@@ -270,7 +342,7 @@ fn naclip_attention_by_hand() {
 #[test]
 fn text_matches_open_clip() {
     let g = goldens();
-    let text = SiglipText::load(&tiny_dir().join("text"), &common::device()).unwrap();
+    let text = SiglipText::load(&tiny_dir().join("text"), &common::device(), F32).unwrap();
     let prompts: Vec<&str> = g["text"]["prompts"]
         .as_array()
         .unwrap()
@@ -295,16 +367,18 @@ fn text_matches_open_clip() {
     assert_close("text embeddings", &emb, &floats(&g["text"]["embeddings"]));
 }
 
-fn tiny_encoder() -> NaradioEncoder {
-    let g = goldens();
-    let config = NaradioEncoderConfig {
+fn tiny_encoder_config() -> NaradioEncoderConfig {
+    NaradioEncoderConfig {
         model_dir: Some(tiny_dir()),
         short_side: 64,
-        gauss_std: g["gauss_std"].as_f64().unwrap(),
+        gauss_std: goldens()["gauss_std"].as_f64().unwrap(),
         device: common::compute_device(),
         ..NaradioEncoderConfig::default()
-    };
-    NaradioEncoder::from_config(config, &BuildContext::default()).unwrap()
+    }
+}
+
+fn tiny_encoder() -> NaradioEncoder {
+    NaradioEncoder::from_config(tiny_encoder_config(), &BuildContext::default()).unwrap()
 }
 
 #[test]

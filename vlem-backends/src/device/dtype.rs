@@ -8,6 +8,8 @@
 
 use serde::{Deserialize, Serialize};
 
+use crate::error::BackendError;
+
 /// The floating-point type of a candle model's weights and activations.
 #[derive(Clone, Copy, Debug, Default, PartialEq, Eq, Hash, Deserialize, Serialize)]
 #[serde(rename_all = "lowercase")]
@@ -22,6 +24,25 @@ pub enum ModelDtype {
 }
 
 impl ModelDtype {
+    /// The type named by the environment variable `name` (`f32`, `f16` or `bf16`), f32 when it
+    /// is unset or empty: how the benchmarks are told the type to time.
+    ///
+    /// # Errors
+    /// [`BackendError::InvalidParams`] naming the variable when it holds another word.
+    pub fn from_env(name: &str) -> Result<Self, BackendError> {
+        match std::env::var(name) {
+            Ok(text) if !text.trim().is_empty() => match text.trim() {
+                "f32" => Ok(Self::F32),
+                "f16" => Ok(Self::F16),
+                "bf16" => Ok(Self::Bf16),
+                other => Err(BackendError::InvalidParams(format!(
+                    "the environment variable {name} = {other:?} is not a type; expected \"f32\", \"f16\" or \"bf16\""
+                ))),
+            },
+            _ => Ok(Self::F32),
+        }
+    }
+
     /// The candle type.
     #[cfg(feature = "candle")]
     pub fn candle(self) -> candle_core::DType {

@@ -26,6 +26,7 @@ use candle_core::{D, DType, Device, Tensor};
 use candle_nn::{LayerNorm, Module};
 
 use super::model::BackboneOutput;
+use crate::ModelDtype;
 use crate::error::BackendError;
 use crate::vit::{Activation, Block, Linear, Mlp, Weights, fused_attention};
 
@@ -80,8 +81,8 @@ fn dims_of(w: &Weights, name: &str) -> Result<Vec<usize>, String> {
 
 impl DinoTxtHeads {
     /// Reads the released checkpoint (a `torch.save`d state dict, `.pth`) for a backbone with
-    /// `vision_heads` attention heads (16 for ViT-L/16). The text tower's head count is its width
-    /// over [`TEXT_HEAD_DIM`] unless `text_heads` says otherwise.
+    /// `vision_heads` attention heads (16 for ViT-L/16), onto `device` in `dtype`. The text
+    /// tower's head count is its width over [`TEXT_HEAD_DIM`] unless `text_heads` says otherwise.
     ///
     /// # Errors
     /// [`BackendError::InvalidModelFile`] for a file that cannot be read as a PyTorch state dict
@@ -91,6 +92,7 @@ impl DinoTxtHeads {
         vision_heads: usize,
         text_heads: Option<usize>,
         device: &Device,
+        dtype: ModelDtype,
     ) -> Result<Self, BackendError> {
         let invalid = |reason: String| BackendError::InvalidModelFile {
             path: path.to_path_buf(),
@@ -99,12 +101,12 @@ impl DinoTxtHeads {
         let tensors = candle_core::pickle::read_all(path)
             .map_err(|e| invalid(format!("cannot read it as a PyTorch state dict: {e}")))?;
         let tensors: HashMap<String, Tensor> = tensors.into_iter().collect();
-        Self::from_weights(&Weights::new(tensors, device), vision_heads, text_heads)
-            .map_err(invalid)
+        let weights = Weights::new(tensors, device, dtype.candle());
+        Self::from_weights(&weights, vision_heads, text_heads).map_err(invalid)
     }
 
-    /// The heads from tensors named as in the released checkpoint, on `device`, for benchmarks
-    /// that fill the full-size architecture with random weights.
+    /// The heads from tensors named as in the released checkpoint, on `device` in `dtype`, for
+    /// benchmarks that fill the full-size architecture with random weights.
     ///
     /// # Errors
     /// [`BackendError::InvalidParams`] naming a missing or misshapen tensor.
@@ -114,9 +116,10 @@ impl DinoTxtHeads {
         vision_heads: usize,
         text_heads: Option<usize>,
         device: &Device,
+        dtype: ModelDtype,
     ) -> Result<Self, BackendError> {
-        Self::from_weights(&Weights::new(tensors, device), vision_heads, text_heads)
-            .map_err(BackendError::InvalidParams)
+        let weights = Weights::new(tensors, device, dtype.candle());
+        Self::from_weights(&weights, vision_heads, text_heads).map_err(BackendError::InvalidParams)
     }
 
     /// Builds the heads from tensors named as in Meta's `DINOTxt` state dict.
@@ -263,12 +266,18 @@ impl DinoTxtHeads {
         self.text.token_embedding.dim(0).unwrap_or(0)
     }
 
+    /// The type the heads compute in.
+    pub fn dtype(&self) -> DType {
+        self.text.token_embedding.dtype()
+    }
+
     /// Vision head blocks.
     pub fn vision_blocks(&self) -> usize {
         self.vision_blocks.len()
     }
 
-    /// The vision head over the backbone's output.
+    /// The vision head over the backbone's output (converted to the heads' type, which the
+    /// output is in).
     ///
     /// # Errors
     /// A candle error if the backbone is not as wide as the head.
@@ -280,7 +289,7 @@ impl DinoTxtHeads {
                 self.width
             )));
         }
-        let mut x = backbone.tokens.clone();
+        let mut x = backbone.tokens.to_dtype(self.dtype())?;
         for block in &self.vision_blocks {
             x = block.forward(&x, None, None)?;
         }
@@ -341,7 +350,7 @@ impl DinoTxtHeads {
             let mask: Vec<f32> = (0..len)
                 .flat_map(|i| (0..len).map(move |j| if j > i { f32::NEG_INFINITY } else { 0.0 }))
                 .collect();
-            let mask = Tensor::from_vec(mask, (len, len), device)?;
+            let mask = Tensor::from_vec(mask, (len, len), device)?.to_dtype(x.dtype())?;
             let mut x = x;
             for block in &t.blocks {
                 x = block.forward(&x, None, Some(&mask))?;

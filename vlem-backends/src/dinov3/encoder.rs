@@ -29,11 +29,12 @@
 //! # short_side = 448                  # input's shorter side in pixels, a multiple of 16
 //! # templates = ["a photo of a {}."]
 //! # device = "cpu"                   # "cuda", "cuda:N" with feature `cuda`
+//! # dtype = "f32"                     # "f16", "bf16": backbone and heads in half precision
 //! ```
 
 use std::path::{Path, PathBuf};
 
-use candle_core::Tensor;
+use candle_core::{DType, Tensor};
 use serde::Deserialize;
 use vlem_core::{BuildContext, Encoder, PixelEmbeddings, Region, RgbImage, StageKind};
 
@@ -96,6 +97,9 @@ pub struct Dinov3EncoderConfig {
     pub text_heads: Option<usize>,
     /// Where the model runs: `"cpu"` (default), `"cuda"` or `"cuda:N"` (feature `cuda`).
     pub device: crate::ComputeDevice,
+    /// What the backbone and both heads compute in: `"f32"` (default), `"f16"` or `"bf16"` (for
+    /// a GPU; on the CPU half precision runs through candle's plain ops, slower than f32's).
+    pub dtype: crate::ModelDtype,
 }
 
 impl Default for Dinov3EncoderConfig {
@@ -108,6 +112,7 @@ impl Default for Dinov3EncoderConfig {
             templates: crate::prompts::default_templates(),
             text_heads: None,
             device: crate::ComputeDevice::Cpu,
+            dtype: crate::ModelDtype::F32,
         }
     }
 }
@@ -282,12 +287,13 @@ impl Dinov3Encoder {
             resolve(&config.bpe_vocab).as_deref(),
         )?;
         let device = config.device.open()?;
-        let backbone = Dinov3Backbone::load(&files.model_dir, &device)?;
+        let backbone = Dinov3Backbone::load(&files.model_dir, &device, config.dtype)?;
         let heads = DinoTxtHeads::load_pth(
             &files.dinotxt_weights,
             backbone.config().num_attention_heads,
             config.text_heads,
             &device,
+            config.dtype,
         )?;
         let tokenizer = ClipBpe::load(&files.bpe_vocab)?;
         if tokenizer.vocab_size() > heads.vocab_size() {
@@ -335,7 +341,12 @@ impl Dinov3Encoder {
                 self.backbone.device(),
             )?;
             let tokens = self.backbone.forward(&pixels)?;
-            let grid = self.heads.vision(&tokens)?.patch_grid;
+            // Normalised in f32 whatever the model's type.
+            let grid = self
+                .heads
+                .vision(&tokens)?
+                .patch_grid
+                .to_dtype(DType::F32)?;
             let norms = grid.sqr()?.sum_keepdim(3)?.sqrt()?;
             let grid = grid.broadcast_div(&norms)?;
             Ok((

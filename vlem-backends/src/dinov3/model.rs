@@ -30,6 +30,7 @@ use crate::hf_config::{HfConfigError, Section};
 use candle_core::{DType, Device, Tensor};
 use candle_nn::{LayerNorm, Module};
 
+use crate::ModelDtype;
 use crate::error::BackendError;
 pub use crate::vit::{Activation, rope_angles};
 use crate::vit::{Block, Linear, Mlp, Rope, Weights, fused_attention};
@@ -252,6 +253,8 @@ pub struct Dinov3Backbone {
     layers: Vec<Block>,
     norm: LayerNorm,
     device: Device,
+    /// What the backbone computes in; its input is converted on the way in.
+    dtype: DType,
     dir: PathBuf,
 }
 
@@ -273,15 +276,16 @@ pub fn check_model_dir(dir: &Path, origin: String) -> Result<PathBuf, BackendErr
 }
 
 impl Dinov3Backbone {
-    /// Loads the backbone in `dir` (`config.json`, `model.safetensors`) onto `device`, in f32
-    /// (half-precision weights are widened). Reads the tensor names of the hub checkpoints
-    /// (`layer.N.…`) and those `transformers` ≥ 5 uses in memory (`model.layer.N.…`).
+    /// Loads the backbone in `dir` (`config.json`, `model.safetensors`) onto `device`, its
+    /// weights converted to `dtype`, the type it computes in. Reads the tensor names of the hub
+    /// checkpoints (`layer.N.…`) and those `transformers` ≥ 5 uses in memory
+    /// (`model.layer.N.…`).
     ///
     /// # Errors
     /// [`BackendError::MissingModelFiles`] when a file is missing,
     /// [`BackendError::InvalidModelFile`] when one cannot be read or does not describe a DINOv3
     /// ViT (wrong `model_type`, tensor names or shapes that disagree with `config.json`).
-    pub fn load(dir: &Path, device: &Device) -> Result<Self, BackendError> {
+    pub fn load(dir: &Path, device: &Device, dtype: ModelDtype) -> Result<Self, BackendError> {
         let dir = check_model_dir(dir, "the caller".to_owned())?;
         let config_path = dir.join("config.json");
         let text = crate::model_files::read_text(&config_path)?;
@@ -297,17 +301,19 @@ impl Dinov3Backbone {
                 reason: format!("cannot read the weights: {e}"),
             }
         })?;
-        let mut backbone = Self::from_weights(&config, &Weights::new(tensors, device), "")
-            .map_err(|reason| BackendError::InvalidModelFile {
+        let weights = Weights::new(tensors, device, dtype.candle());
+        let mut backbone = Self::from_weights(&config, &weights, "").map_err(|reason| {
+            BackendError::InvalidModelFile {
                 path: weights_path.clone(),
                 reason: format!("the weights do not match config.json: {reason}"),
-            })?;
+            }
+        })?;
         backbone.dir = dir;
         Ok(backbone)
     }
 
-    /// The backbone from tensors named as in a hub `model.safetensors`, on `device`, for
-    /// benchmarks that fill a full-size architecture with random weights.
+    /// The backbone from tensors named as in a hub `model.safetensors`, on `device` in `dtype`,
+    /// for benchmarks that fill a full-size architecture with random weights.
     ///
     /// # Errors
     /// [`BackendError::InvalidParams`] naming a missing or misshapen tensor.
@@ -316,8 +322,9 @@ impl Dinov3Backbone {
         config: &Dinov3Config,
         tensors: std::collections::HashMap<String, Tensor>,
         device: &Device,
+        dtype: ModelDtype,
     ) -> Result<Self, BackendError> {
-        Self::from_weights(config, &Weights::new(tensors, device), "")
+        Self::from_weights(config, &Weights::new(tensors, device, dtype.candle()), "")
             .map_err(BackendError::InvalidParams)
     }
 
@@ -370,6 +377,7 @@ impl Dinov3Backbone {
             layers,
             norm: w.layer_norm(&format!("{prefix}norm"), hidden, c.layer_norm_eps)?,
             device: w.device().clone(),
+            dtype: w.dtype(),
             dir: PathBuf::new(),
         })
     }
@@ -389,9 +397,15 @@ impl Dinov3Backbone {
         &self.device
     }
 
+    /// The type the backbone computes in, and its output's.
+    pub fn dtype(&self) -> DType {
+        self.dtype
+    }
+
     /// Runs the backbone on `pixels`, `(batch, channels, height, width)`, normalised (ImageNet
-    /// mean and std for the released checkpoints); `height` and `width` must be multiples of
-    /// the patch size, and may differ.
+    /// mean and std for the released checkpoints), in any float type (converted to the
+    /// backbone's); `height` and `width` must be multiples of the patch size, and may differ.
+    /// The output is in the backbone's [`dtype`](Self::dtype).
     ///
     /// # Errors
     /// A candle error for a tensor of the wrong rank or channel count, or a side that is not a
@@ -416,6 +430,7 @@ impl Dinov3Backbone {
         // (b, c, gh, p, gw, p) -> (b, gh, gw, c, p, p): each patch's pixels in the order of the
         // convolution weight, so that the convolution is one matrix product.
         let patches = pixels
+            .to_dtype(self.dtype)?
             .reshape((batch, channels, gh, p, gw, p))?
             .permute((0, 2, 4, 1, 3, 5))?
             .contiguous()?
@@ -428,7 +443,13 @@ impl Dinov3Backbone {
             .prefix
             .broadcast_as((batch, c.prefix_tokens(), c.hidden_size))?;
         let mut x = Tensor::cat(&[&prefix, &patches], 1)?;
-        let rope = Rope::new(gh, gw, c.head_dim(), c.rope_theta, &self.device)?;
+        let rope = Rope::new(
+            (gh, gw),
+            c.head_dim(),
+            c.rope_theta,
+            &self.device,
+            self.dtype,
+        )?;
         for layer in &self.layers {
             x = layer.forward(&x, Some(&rope), None)?;
         }
@@ -450,7 +471,7 @@ fn load_hf_layer(w: &Weights, prefix: &str, c: &Dinov3Config) -> Result<Block, S
         let bias = if bias {
             w.get(&format!("{a}.{name}.bias"), &[h])?
         } else {
-            Tensor::zeros(h, DType::F32, w.device()).map_err(|e| e.to_string())?
+            Tensor::zeros(h, w.dtype(), w.device()).map_err(|e| e.to_string())?
         };
         Ok((weight, bias))
     };

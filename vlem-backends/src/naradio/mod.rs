@@ -30,6 +30,7 @@
 //! # reduced_last_block = false     # true: NACLIP's block without residual and MLP
 //! # templates = ["a photo of a {}."]  # default: the 80 OpenAI ImageNet templates
 //! # device = "cpu"                # "cuda", "cuda:N" with feature `cuda`
+//! # dtype = "f32"                 # "f16", "bf16": trunk, adaptor and text tower in half
 //! ```
 
 pub mod model;
@@ -162,6 +163,10 @@ pub struct NaradioEncoderConfig {
     pub templates: Vec<String>,
     /// Where the model runs: `"cpu"` (default), `"cuda"` or `"cuda:N"` (feature `cuda`).
     pub device: crate::ComputeDevice,
+    /// What the trunk, the adaptor and the text tower compute in: `"f32"` (default), `"f16"` or
+    /// `"bf16"` (for a GPU; on the CPU half precision runs through candle's plain ops, slower
+    /// than f32's).
+    pub dtype: crate::ModelDtype,
 }
 
 impl Default for NaradioEncoderConfig {
@@ -174,6 +179,7 @@ impl Default for NaradioEncoderConfig {
             reduced_last_block: false,
             templates: IMAGENET_TEMPLATES.iter().map(|t| (*t).to_owned()).collect(),
             device: crate::ComputeDevice::Cpu,
+            dtype: crate::ModelDtype::F32,
         }
     }
 }
@@ -237,13 +243,13 @@ impl NaradioEncoder {
         let configured = config.model_dir.as_deref().map(|p| ctx.resolve(p));
         let dir = locate_model_dir(configured.as_deref())?;
         let device = config.device.open()?;
-        let model = RadioModel::load(&dir, &device)?;
+        let model = RadioModel::load(&dir, &device, config.dtype)?;
         crate::patch_input::check_short_side(
             config.short_side,
             model.config().patch_size,
             NaradioEncoderConfig::default().short_side,
         )?;
-        let text = SiglipText::load(&dir.join("text"), &device)?;
+        let text = SiglipText::load(&dir.join("text"), &device, config.dtype)?;
         let dim = model.adaptor_dim()?;
         Ok(Self {
             model,
@@ -295,6 +301,7 @@ impl NaradioEncoder {
         let lang = self.model.adapt(&out.features)?;
         let data = lang
             .flatten_all()
+            .and_then(|t| t.to_dtype(candle_core::DType::F32))
             .and_then(|t| t.to_vec1::<f32>())
             .map_err(|e| BackendError::Inference {
                 what: "reading the patch grid".to_owned(),

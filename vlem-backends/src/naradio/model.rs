@@ -15,6 +15,7 @@ use candle_core::{D, DType, Device, Tensor};
 use candle_nn::{LayerNorm, Module};
 use serde::Deserialize;
 
+use crate::ModelDtype;
 use crate::attention::Scores;
 use crate::error::BackendError;
 use crate::vit::{Activation, Attention, Block, Linear, Mlp, Weights, fused_attention};
@@ -255,6 +256,8 @@ pub struct RadioModel {
     pos_cache: Cache,
     prior_cache: PriorCache,
     device: Device,
+    /// What the trunk and adaptor compute in; inputs are converted on the way in.
+    dtype: DType,
     dir: PathBuf,
 }
 
@@ -290,12 +293,13 @@ fn inference(what: &str, e: candle_core::Error) -> BackendError {
 }
 
 impl RadioModel {
-    /// Loads `config.json` and `radio.safetensors` of the NARADIO folder `dir`.
+    /// Loads `config.json` and `radio.safetensors` of the NARADIO folder `dir` onto `device`, the
+    /// weights converted to `dtype`, the type the trunk and adaptor compute in.
     ///
     /// # Errors
     /// [`BackendError::MissingModelFiles`] when a file of the folder is missing;
     /// [`BackendError::InvalidModelFile`] when one cannot be read or disagrees with the config.
-    pub fn load(dir: &Path, device: &Device) -> Result<Self, BackendError> {
+    pub fn load(dir: &Path, device: &Device, dtype: ModelDtype) -> Result<Self, BackendError> {
         let dir = check_model_dir(dir, "the caller".to_owned())?;
         let config_path = dir.join("config.json");
         let text = crate::model_files::read_text(&config_path)?;
@@ -322,7 +326,7 @@ impl RadioModel {
         let weights_path = dir.join("radio.safetensors");
         let tensors = candle_core::safetensors::load(&weights_path, device)
             .map_err(|e| invalid(&weights_path, format!("cannot read it: {e}")))?;
-        let w = Weights::new(tensors, device);
+        let w = Weights::new(tensors, device, dtype.candle());
         Self::from_weights(config, &w, dir.clone()).map_err(|reason| invalid(&weights_path, reason))
     }
 
@@ -404,12 +408,13 @@ impl RadioModel {
             pos_cache: Arc::default(),
             prior_cache: Arc::default(),
             device,
+            dtype: w.dtype(),
             dir,
         })
     }
 
     /// A model of the shape `config` with random weights and a `v2` adaptor of `adaptor_hidden`
-    /// → `adaptor_out` with one inner block, on `device`: for speed measurements only.
+    /// → `adaptor_out` with one inner block, on `device` in `dtype`: for speed measurements only.
     ///
     /// # Errors
     /// [`BackendError::InvalidParams`] for an inconsistent shape.
@@ -419,6 +424,7 @@ impl RadioModel {
         adaptor_hidden: usize,
         adaptor_out: usize,
         device: &Device,
+        dtype: ModelDtype,
     ) -> Result<Self, BackendError> {
         let c = &config;
         let (e, p, h) = (c.embed_dim, c.patch_size, c.mlp_hidden);
@@ -483,8 +489,8 @@ impl RadioModel {
             adaptor_mlp: "v2".into(),
             ..config
         };
-        Self::from_weights(config, &Weights::new(tensors, device), PathBuf::new())
-            .map_err(BackendError::InvalidParams)
+        let weights = Weights::new(tensors, device, dtype.candle());
+        Self::from_weights(config, &weights, PathBuf::new()).map_err(BackendError::InvalidParams)
     }
 
     /// The folder's `config.json`.
@@ -502,19 +508,32 @@ impl RadioModel {
             .map_err(|e| inference("the adaptor width", e))
     }
 
-    /// The device the model runs on (the CPU).
+    /// The device the model runs on.
     pub fn device(&self) -> &Device {
         &self.device
     }
 
-    /// RADIO's input conditioning of `[0, 1]` RGB `(batch, 3, h, w)`: `(x - mean) / std`.
+    /// The type the model computes in, and its outputs'.
+    pub fn dtype(&self) -> DType {
+        self.dtype
+    }
+
+    /// RADIO's input conditioning of `[0, 1]` RGB `(batch, 3, h, w)`: `(x - mean) / std`, in
+    /// `x`'s type.
     ///
     /// # Errors
     /// [`BackendError::Inference`] for a tensor of another shape.
     pub fn condition(&self, x: &Tensor) -> Result<Tensor, BackendError> {
         let run = || -> candle_core::Result<Tensor> {
-            let mean = Tensor::new(&self.config.input_mean, &self.device)?.reshape((1, 3, 1, 1))?;
-            let std = Tensor::new(&self.config.input_std, &self.device)?.reshape((1, 3, 1, 1))?;
+            let channels = |v: &[f32; 3]| {
+                Tensor::new(v, &self.device)?
+                    .reshape((1, 3, 1, 1))?
+                    .to_dtype(x.dtype())
+            };
+            let (mean, std) = (
+                channels(&self.config.input_mean)?,
+                channels(&self.config.input_std)?,
+            );
             x.broadcast_sub(&mean)?.broadcast_div(&std)
         };
         run().map_err(|e| inference("conditioning the input", e))
@@ -534,8 +553,10 @@ impl RadioModel {
             self.pos_table.reshape((rows * cols, e))?
         } else {
             let m = rows.max(cols);
-            let ry = Tensor::from_vec(resize_matrix(gr, m, rows), (rows, gr), &self.device)?;
-            let rx = Tensor::from_vec(resize_matrix(gc, m, cols), (1, cols, gc), &self.device)?;
+            let ry = Tensor::from_vec(resize_matrix(gr, m, rows), (rows, gr), &self.device)?
+                .to_dtype(self.dtype)?;
+            let rx = Tensor::from_vec(resize_matrix(gc, m, cols), (1, cols, gc), &self.device)?
+                .to_dtype(self.dtype)?;
             // (rows, gc·e) -> (rows, gc, e), then each row through the column resize.
             let y = ry.matmul(&self.pos_table)?.reshape((rows, gc, e))?;
             rx.broadcast_as((rows, cols, gc))?
@@ -568,15 +589,17 @@ impl RadioModel {
             gaussian_prior(rows, cols, std, grid, prefix),
             (n, n),
             &self.device,
-        )?;
+        )?
+        .to_dtype(self.dtype)?;
         if let Ok(mut cache) = self.prior_cache.lock() {
             cache.insert(key, t.clone());
         }
         Ok(t)
     }
 
-    /// The trunk on conditioned pixels `(batch, 3, h, w)` (h, w multiples of the patch size),
-    /// with `last` as its last block.
+    /// The trunk on conditioned pixels `(batch, 3, h, w)` (h, w multiples of the patch size; any
+    /// float type, converted to the model's), with `last` as its last block. The outputs are in
+    /// the model's [`dtype`](Self::dtype).
     ///
     /// # Errors
     /// [`BackendError::InvalidInput`] for a wrong shape; [`BackendError::Inference`].
@@ -607,6 +630,7 @@ impl RadioModel {
         let (p, e) = (c.patch_size, c.embed_dim);
         // b c (rows p) (cols p) -> b (rows cols) (c p p)
         let patches = x
+            .to_dtype(self.dtype)?
             .reshape((batch, 3, rows, p, cols, p))?
             .permute((0, 2, 4, 1, 3, 5))?
             .contiguous()?
@@ -648,13 +672,13 @@ impl RadioModel {
     }
 
     /// The adaptor's summary MLP over the last dimension of `x` (patch tokens or summary
-    /// chunks): RADIO features into the text space.
+    /// chunks, converted to the model's type): RADIO features into the text space.
     ///
     /// # Errors
     /// [`BackendError::Inference`] for a wrong width.
     pub fn adapt(&self, x: &Tensor) -> Result<Tensor, BackendError> {
-        self.adaptor
-            .forward(x)
+        x.to_dtype(self.dtype)
+            .and_then(|x| self.adaptor.forward(&x))
             .map_err(|e| inference("the adaptor MLP", e))
     }
 

@@ -14,6 +14,7 @@ use candle_transformers::models::siglip;
 use serde::Deserialize;
 use tokenizers::{PaddingParams, PaddingStrategy, Tokenizer, TruncationParams};
 
+use crate::ModelDtype;
 use crate::error::BackendError;
 
 /// The extra keys `convert_radio.py` writes into `text/config.json`.
@@ -67,11 +68,12 @@ fn invalid(path: &Path, reason: impl Into<String>) -> BackendError {
 }
 
 impl SiglipText {
-    /// Loads `dir/config.json`, `dir/model.safetensors` and `dir/tokenizer.json` onto `device`.
+    /// Loads `dir/config.json`, `dir/model.safetensors` and `dir/tokenizer.json` onto `device`,
+    /// the weights converted to `dtype`, the type the tower computes in (its output stays f32).
     ///
     /// # Errors
     /// [`BackendError::InvalidModelFile`] naming the file that cannot be read or does not fit.
-    pub fn load(dir: &Path, device: &Device) -> Result<Self, BackendError> {
+    pub fn load(dir: &Path, device: &Device, dtype: ModelDtype) -> Result<Self, BackendError> {
         let config_path = dir.join("config.json");
         let text = crate::model_files::read_text(&config_path)?;
         let config: siglip::TextConfig =
@@ -98,10 +100,10 @@ impl SiglipText {
             .map_err(|e| invalid(&weights, format!("cannot read it: {e}")))?;
         let tensors = tensors
             .into_iter()
-            .map(|(k, v)| v.to_dtype(candle_core::DType::F32).map(|v| (k, v)))
+            .map(|(k, v)| v.to_dtype(dtype.candle()).map(|v| (k, v)))
             .collect::<candle_core::Result<std::collections::HashMap<_, _>>>()
             .map_err(|e| invalid(&weights, e.to_string()))?;
-        let vb = VarBuilder::from_tensors(tensors, candle_core::DType::F32, &device);
+        let vb = VarBuilder::from_tensors(tensors, dtype.candle(), &device);
         let model = siglip::TextModel::new(&config, vb.pp("text_model"))
             .map_err(|e| invalid(&weights, e.to_string()))?;
         let tokenizer_path = dir.join("tokenizer.json");
@@ -169,7 +171,10 @@ impl SiglipText {
         let flat: Vec<u32> = ids.iter().flatten().copied().collect();
         let run = || -> candle_core::Result<Vec<Vec<f32>>> {
             let input = Tensor::from_vec(flat, (prompts.len(), self.context), &self.device)?;
-            self.model.forward(&input)?.to_vec2::<f32>()
+            self.model
+                .forward(&input)?
+                .to_dtype(candle_core::DType::F32)?
+                .to_vec2::<f32>()
         };
         run().map_err(|e| BackendError::Inference {
             what: "the SigLIP text tower".to_owned(),

@@ -43,3 +43,32 @@ pub fn tolerance(cpu: f32) -> f32 {
         cpu.max(1e-3)
     }
 }
+
+/// The least cosine between matching rows of `dim` values of `got` and `want` (row-major, the
+/// same length): how half-precision embeddings are held to their f32 goldens.
+pub fn least_row_cosine(got: &[f32], want: &[f32], dim: usize) -> f32 {
+    assert_eq!(got.len(), want.len(), "rows of different lengths");
+    assert!(
+        dim > 0 && got.len().is_multiple_of(dim),
+        "{} values in rows of {dim}",
+        got.len()
+    );
+    let norm = |v: &[f32]| v.iter().map(|x| x * x).sum::<f32>().sqrt();
+    got.chunks(dim)
+        .zip(want.chunks(dim))
+        .map(|(g, w)| {
+            let dot: f32 = g.iter().zip(w).map(|(a, b)| a * b).sum();
+            dot / (norm(g) * norm(w)).max(f32::MIN_POSITIVE)
+        })
+        .fold(1.0, f32::min)
+}
+
+/// The least cosine a model in half precision must keep to its f32 goldens, per embedding: f16
+/// keeps 11 significant bits, bf16 8.
+pub fn half_precision_bound(dtype: vlem_backends::ModelDtype) -> f32 {
+    match dtype {
+        vlem_backends::ModelDtype::F32 => 0.99999,
+        vlem_backends::ModelDtype::F16 => 0.9995,
+        vlem_backends::ModelDtype::Bf16 => 0.995,
+    }
+}
