@@ -8,8 +8,9 @@
 //! computes `exp` and the exact GELU's `erf` with scalar library calls on one thread (together
 //! ~18 % of a NARADIO frame). Fused loops over cache-sized bands use [`matmul`] and [`erf`]; the
 //! models' GELU, quick GELU and softmax go through [`gelu_erf`], [`quick_gelu`] and
-//! [`softmax_last_dim`], which run these loops on both cores for f32 CPU tensors and are candle's
-//! own ops on every other device and dtype (so model code stays device-generic).
+//! [`softmax_last_dim`], which run these loops on both cores for CPU tensors (half precision
+//! through f32, as PyTorch accumulates) and are candle's own ops on every other device (so model
+//! code stays device-generic).
 //!
 //! `unsafe` here (the workspace denies it elsewhere; the crate's only other place is the two
 //! `mallopt` calls of `allocator.rs`): [`matmul`] calls the `gemm` crate, candle's own CPU matrix
@@ -268,16 +269,23 @@ impl candle_core::CustomOp1 for CpuOp {
     }
 }
 
-/// Runs `op` on an f32 CPU tensor, `fallback` (candle's own op) otherwise.
+/// Runs `op` on a CPU tensor, `fallback` (candle's own op) on other devices. Half-precision CPU
+/// tensors go through f32 and back: candle's CPU softmax sums in the tensor's type, and 4096
+/// exponentials summed in f16 lose the precision a model in half keeps elsewhere (on CUDA,
+/// candle's softmax accumulates in f32 itself).
 fn on_cpu_or(
     x: &candle_core::Tensor,
     op: CpuOp,
     fallback: impl FnOnce(&candle_core::Tensor) -> candle_core::Result<candle_core::Tensor>,
 ) -> candle_core::Result<candle_core::Tensor> {
-    if x.device().is_cpu() && x.dtype() == candle_core::DType::F32 {
-        x.contiguous()?.apply_op1_no_bwd(&op)
-    } else {
-        fallback(x)
+    use candle_core::DType;
+    match x.dtype() {
+        DType::F32 if x.device().is_cpu() => x.contiguous()?.apply_op1_no_bwd(&op),
+        half @ (DType::F16 | DType::BF16) if x.device().is_cpu() => x
+            .to_dtype(DType::F32)?
+            .apply_op1_no_bwd(&op)?
+            .to_dtype(half),
+        _ => fallback(x),
     }
 }
 

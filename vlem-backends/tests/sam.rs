@@ -16,9 +16,8 @@ mod common;
 use std::collections::BTreeMap;
 use std::path::{Path, PathBuf};
 
-use candle_core::{Device, Tensor};
+use candle_core::{DType, Device, Tensor};
 use serde_json::Value;
-use vlem_backends::BackendError;
 use vlem_backends::sam::image::{
     AxisMap, LOW_RES, preprocess_shape, resize_rgb_like_pillow, upsample_logits,
 };
@@ -29,6 +28,7 @@ use vlem_backends::sam::vit::VitConfig;
 use vlem_backends::sam::{
     self, GeneratedMask, GeneratorParams, Pass, SamConfig, SamVariant, amg, generate_masks,
 };
+use vlem_backends::{BackendError, ModelDtype};
 use vlem_core::{BuildContext, RgbImage, StageConfig};
 
 fn goldens_dir() -> PathBuf {
@@ -156,7 +156,8 @@ fn multimask(model: &SamModel, emb: &Tensor, points: &[[f32; 2]]) -> (Vec<f32>, 
     let (masks, ious) = model.decode_points(emb, points).unwrap();
     let masks = masks.narrow(1, 1, 3).unwrap().flatten_all().unwrap();
     let ious = ious.narrow(1, 1, 3).unwrap().flatten_all().unwrap();
-    (masks.to_vec1().unwrap(), ious.to_vec1().unwrap())
+    let f32s = |t: Tensor| t.to_dtype(DType::F32).unwrap().to_vec1().unwrap();
+    (f32s(masks), f32s(ious))
 }
 
 fn stride_sample(values: &[f32], width: usize, step: usize) -> Vec<f32> {
@@ -355,32 +356,120 @@ fn check_network(key: &str, encoder: EncoderConfig, state_dict: &str) {
     }
 }
 
+/// The tiny ViT of the goldens.
+fn tiny_vit() -> EncoderConfig {
+    EncoderConfig::Vit(VitConfig {
+        embed_dim: 32,
+        depth: 2,
+        num_heads: 2,
+        global_attn_indexes: vec![1],
+    })
+}
+
+/// The tiny TinyViT of the goldens.
+fn tiny_tinyvit() -> EncoderConfig {
+    EncoderConfig::TinyVit(TinyVitConfig {
+        embed_dims: [16, 32, 64, 320],
+        depths: [1, 1, 1, 1],
+        num_heads: [1, 2, 2, 10],
+        window_sizes: [7, 7, 14, 7],
+    })
+}
+
 #[test]
 fn vit_network_matches_segment_anything() {
-    check_network(
-        "vit",
-        EncoderConfig::Vit(VitConfig {
-            embed_dim: 32,
-            depth: 2,
-            num_heads: 2,
-            global_attn_indexes: vec![1],
-        }),
-        "state_dict_tiny_vit.json",
-    );
+    check_network("vit", tiny_vit(), "state_dict_tiny_vit.json");
 }
 
 #[test]
 fn tinyvit_network_matches_mobile_sam() {
-    check_network(
-        "tiny_vit",
-        EncoderConfig::TinyVit(TinyVitConfig {
-            embed_dims: [16, 32, 64, 320],
-            depths: [1, 1, 1, 1],
-            num_heads: [1, 2, 2, 10],
-            window_sizes: [7, 7, 14, 7],
-        }),
-        "state_dict_tiny_tinyvit.json",
+    check_network("tiny_vit", tiny_tinyvit(), "state_dict_tiny_tinyvit.json");
+}
+
+/// Half precision (`dtype = "f16" | "bf16"`): both networks on the goldens' weights and image,
+/// against the f32 network (which `check_network` holds to the references): the image embedding
+/// per grid cell (cosine), and per golden point each multimask mask, upsampled to the image and
+/// cut at 0, by its IoU with the f32 network's mask, and the predicted IoUs.
+#[test]
+fn half_precision_networks_agree_with_f32() {
+    let goldens = read_json("sam_goldens.json");
+    let (w, h) = (
+        goldens["image"]["width"].as_u64().unwrap() as usize,
+        goldens["image"]["height"].as_u64().unwrap() as usize,
     );
+    let image = test_image(w, h);
+    // (batch, 256, 64, 64) -> one row of 256 per grid cell.
+    let cells = |t: &Tensor| -> Vec<f32> {
+        let t = t
+            .to_dtype(DType::F32)
+            .unwrap()
+            .reshape((256, 4096))
+            .unwrap();
+        t.t().unwrap().flatten_all().unwrap().to_vec1().unwrap()
+    };
+    for (key, encoder) in [("vit", tiny_vit()), ("tiny_vit", tiny_tinyvit())] {
+        let full = SamModel::new(
+            SyntheticWeights::new().var_builder(&common::device()),
+            &encoder,
+        )
+        .unwrap();
+        let pre = full.preprocess(image.as_raw(), w, h).unwrap();
+        let emb_full = full.embed(&pre.tensor).unwrap();
+        let (xs, ys) = (AxisMap::new(pre.input.1, w), AxisMap::new(pre.input.0, h));
+        // candle has no bf16 convolutions on the CPU: bf16 is checked on a GPU
+        // (`VLEM_TEST_DEVICE=cuda`), and refused on the CPU (below).
+        let dtypes = match common::compute_device() {
+            vlem_backends::ComputeDevice::Cpu => vec![(ModelDtype::F16, 0.01)],
+            _ => vec![(ModelDtype::F16, 0.01), (ModelDtype::Bf16, 0.05)],
+        };
+        for (dtype, iou_tol) in dtypes {
+            let vb = SyntheticWeights::new().var_builder_in(&common::device(), dtype.candle());
+            let half = SamModel::new(vb, &encoder).unwrap();
+            let emb = half.embed(&pre.tensor).unwrap();
+            assert_eq!(emb.dtype(), dtype.candle());
+            let cosine = common::least_row_cosine(&cells(&emb), &cells(&emb_full), 256);
+            let mut least_iou = 1.0f32;
+            let mut worst_pred = 0.0f32;
+            for p in goldens[key]["points"].as_array().unwrap() {
+                let pt = f32s(&p["point"]);
+                let input_pt = [
+                    pt[0] * pre.input.1 as f32 / w as f32,
+                    pt[1] * pre.input.0 as f32 / h as f32,
+                ];
+                let (masks_full, ious_full) = multimask(&full, &emb_full, &[input_pt]);
+                let (masks, ious) = multimask(&half, &emb, &[input_pt]);
+                for k in 0..3 {
+                    let range = k * LOW_RES * LOW_RES..(k + 1) * LOW_RES * LOW_RES;
+                    let a = upsample_logits(&masks[range.clone()], &xs, &ys);
+                    let b = upsample_logits(&masks_full[range], &xs, &ys);
+                    let both = a.iter().zip(&b).filter(|(x, y)| **x > 0.0 && **y > 0.0);
+                    let either = a.iter().zip(&b).filter(|(x, y)| **x > 0.0 || **y > 0.0);
+                    let (both, either) = (both.count(), either.count());
+                    if either > 0 {
+                        least_iou = least_iou.min(both as f32 / either as f32);
+                    }
+                    worst_pred = worst_pred.max((ious[k] - ious_full[k]).abs());
+                }
+            }
+            println!(
+                "{key} {dtype:?}: least embedding cosine {cosine:.6}, least mask IoU \
+                 {least_iou:.4}, largest predicted-IoU difference {worst_pred:.4}"
+            );
+            let bound = common::half_precision_bound(dtype);
+            assert!(
+                cosine >= bound,
+                "{key} {dtype:?}: embedding cosine {cosine}"
+            );
+            assert!(least_iou >= 0.98, "{key} {dtype:?}: mask IoU {least_iou}");
+            assert!(
+                worst_pred <= iou_tol,
+                "{key} {dtype:?}: predicted IoU off by {worst_pred}"
+            );
+        }
+    }
+    let vb = SyntheticWeights::new().var_builder_in(&Device::Cpu, DType::BF16);
+    let e = SamModel::new(vb, &tiny_vit()).unwrap_err().to_string();
+    assert!(e.contains("bf16") && e.contains("GPU"), "{e}");
 }
 
 #[test]
@@ -570,9 +659,12 @@ fn config_defaults_and_refusals() {
     assert_eq!(c.generator.refine_points, 32);
     c.generator.check().unwrap();
     assert_eq!(c.generator, GeneratorParams::default());
-    let c: SamConfig = toml::from_str("variant = \"vit-b\"\nrefine = false").unwrap();
+    assert_eq!(c.dtype, ModelDtype::F32);
+    let c: SamConfig =
+        toml::from_str("variant = \"vit-b\"\nrefine = false\ndtype = \"bf16\"").unwrap();
     assert_eq!(c.variant, SamVariant::VitB);
     assert!(!c.generator.refine);
+    assert_eq!(c.dtype, ModelDtype::Bf16);
 
     let ctx = BuildContext::default();
     let e = build_error("kind = \"sam\"\nweights = \"w\"\npoints = 3", &ctx);
@@ -586,6 +678,11 @@ fn config_defaults_and_refusals() {
         &ctx,
     );
     assert!(e.contains("pred_iou_thresh must be in [0, 1]"), "{e}");
+    let e = build_error(
+        "kind = \"sam\"\nweights = \"w\"\ndtype = \"bf16\"\ndevice = \"cpu\"",
+        &ctx,
+    );
+    assert!(e.contains("bf16") && e.contains("\"f16\""), "{e}");
     let e = build_error("kind = \"sam\"", &ctx);
     assert!(
         e.contains("`weights` must name the MobileSAM weights"),

@@ -10,7 +10,7 @@
 //! prompt (modules `image_side`, `mask_head`: same arithmetic, reassociated, so equal
 //! within rounding); elsewhere every step is a candle op.
 
-use candle_core::{Module, Result, Tensor};
+use candle_core::{DType, Module, Result, Tensor};
 use candle_nn::{LayerNorm, Linear, VarBuilder};
 
 use super::image::{EMBED_DIM, GRID, INPUT_SIZE};
@@ -26,6 +26,9 @@ const MLP_DIM: usize = 2048;
 /// The prompt encoder, point prompts only (no boxes, no mask input).
 #[derive(Debug)]
 pub struct PromptEncoder {
+    /// The random Fourier matrix, in f32 whatever the model's type: the features are sines of
+    /// 2π times products of up to ~10, which half precision would shift by a good part of a
+    /// period. They are converted to the model's type once made.
     gaussian: Tensor,
     point_embeddings: Vec<Tensor>,
     not_a_point: Tensor,
@@ -46,18 +49,20 @@ impl PromptEncoder {
         Ok(Self {
             gaussian: vb
                 .pp("pe_layer")
-                .get((2, EMBED_DIM / 2), "positional_encoding_gaussian_matrix")?,
+                .get((2, EMBED_DIM / 2), "positional_encoding_gaussian_matrix")?
+                .to_dtype(DType::F32)?,
             point_embeddings,
             not_a_point: vb.pp("not_a_point_embed").get((1, EMBED_DIM), "weight")?,
             no_mask: vb.pp("no_mask_embed").get((1, EMBED_DIM), "weight")?,
         })
     }
 
-    /// Random Fourier features of coordinates in `[0, 1]` (last dimension 2).
+    /// Random Fourier features of f32 coordinates in `[0, 1]` (last dimension 2), computed in
+    /// f32 and given in the model's type.
     fn pe_encoding(&self, coords: &Tensor) -> Result<Tensor> {
         let c = coords.affine(2.0, -1.0)?.broadcast_matmul(&self.gaussian)?;
         let c = (c * (2.0 * std::f64::consts::PI))?;
-        cat_last(&[&c.sin()?, &c.cos()?])
+        cat_last(&[&c.sin()?, &c.cos()?])?.to_dtype(self.no_mask.dtype())
     }
 
     /// The positional encoding of the embedding grid, `(1, 256, 64, 64)`.
@@ -273,7 +278,8 @@ impl MaskDecoder {
             .map(|i| TwoWayBlock::new(t.pp("layers").pp(i), i == 0))
             .collect::<Result<Vec<_>>>()?;
         let up = vb.pp("output_upscaling");
-        let head = if vb.device().is_cpu() {
+        // The fused image side reads and writes f32 host buffers: the CPU in f32 only.
+        let head = if vb.device().is_cpu() && vb.dtype() == DType::F32 {
             let (up1, norm, up2) = (up.pp("0"), up.pp("1"), up.pp("3"));
             Some(FusedMaskHead::new(
                 (

@@ -6,7 +6,7 @@
 //! the mask decoder and in TinyViT, where SAM and MobileSAM use the exact one; the difference
 //! (up to ~5e-4 per activation) is visible in the masks, so this backend has its own layers.
 
-use candle_core::{D, Module, Result, Tensor};
+use candle_core::{D, DType, Module, Result, Tensor};
 use candle_nn::{Conv2d, Conv2dConfig, LayerNorm, Linear, VarBuilder};
 
 /// A linear layer with bias (PyTorch `nn.Linear`): weight `(out, in)`.
@@ -37,22 +37,35 @@ impl LayerNorm2d {
     /// Loads `weight` and `bias` of `channels` values.
     pub fn new(vb: VarBuilder, channels: usize, eps: f64) -> Result<Self> {
         Ok(Self {
-            weight: vb.get(channels, "weight")?.reshape((1, channels, 1, 1))?,
-            bias: vb.get(channels, "bias")?.reshape((1, channels, 1, 1))?,
+            // f32 whatever the model's type: see `forward`.
+            weight: vb
+                .get(channels, "weight")?
+                .to_dtype(DType::F32)?
+                .reshape((1, channels, 1, 1))?,
+            bias: vb
+                .get(channels, "bias")?
+                .to_dtype(DType::F32)?
+                .reshape((1, channels, 1, 1))?,
             eps,
         })
     }
 }
 
 impl Module for LayerNorm2d {
+    /// In f32 whatever the input's type (and back): candle sums a half-precision tensor in half
+    /// precision on the CPU and on CUDA, and means over 256 channels that way lose what a model
+    /// in half keeps elsewhere (PyTorch's norms accumulate in f32 too).
     fn forward(&self, xs: &Tensor) -> Result<Tensor> {
+        let dtype = xs.dtype();
+        let xs = xs.to_dtype(DType::F32)?;
         let mean = xs.mean_keepdim(1)?;
         let centred = xs.broadcast_sub(&mean)?;
         let var = centred.sqr()?.mean_keepdim(1)?;
         centred
             .broadcast_div(&(var + self.eps)?.sqrt()?)?
             .broadcast_mul(&self.weight)?
-            .broadcast_add(&self.bias)
+            .broadcast_add(&self.bias)?
+            .to_dtype(dtype)
     }
 }
 

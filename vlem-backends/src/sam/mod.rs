@@ -45,6 +45,7 @@
 //! # refine_points = 32
 //! # seed = 0
 //! # device = "cpu"                         # "cuda", "cuda:N" with feature `cuda`
+//! # dtype = "f32"                          # "f16", "bf16": the network in half precision
 //! ```
 //!
 //! Weights: the official checkpoints converted to safetensors with their tensor names, by
@@ -157,6 +158,9 @@ pub struct SamConfig {
     /// Where the network runs: `"cpu"` (default), `"cuda"` or `"cuda:N"` (feature `cuda`). The
     /// mask post-processing stays on the CPU; each batch's masks cross once.
     pub device: crate::ComputeDevice,
+    /// What the network computes in: `"f32"` (default), `"f16"` or `"bf16"` (for a GPU; on the
+    /// CPU half precision runs through candle's plain ops, slower than f32's fused decoder).
+    pub dtype: crate::ModelDtype,
     /// The mask generator's parameters: the section's other keys.
     pub generator: GeneratorParams,
 }
@@ -168,6 +172,7 @@ struct ModelKeys {
     weights: Option<PathBuf>,
     variant: SamVariant,
     device: crate::ComputeDevice,
+    dtype: crate::ModelDtype,
 }
 
 impl TryFrom<toml::Table> for SamConfig {
@@ -177,7 +182,7 @@ impl TryFrom<toml::Table> for SamConfig {
     /// (`deny_unknown_fields`), so a typo is still an error naming it.
     fn try_from(mut section: toml::Table) -> Result<Self, Self::Error> {
         let mut model = toml::Table::new();
-        for key in ["weights", "variant", "device"] {
+        for key in ["weights", "variant", "device", "dtype"] {
             if let Some(value) = section.remove(key) {
                 model.insert(key.to_owned(), value);
             }
@@ -186,11 +191,13 @@ impl TryFrom<toml::Table> for SamConfig {
             weights,
             variant,
             device,
+            dtype,
         } = model.try_into()?;
         Ok(Self {
             weights,
             variant,
             device,
+            dtype,
             generator: section.try_into()?,
         })
     }
@@ -377,6 +384,10 @@ fn inference(what: &str) -> impl FnOnce(candle_core::Error) -> BackendError + '_
     }
 }
 
+/// Why SAM refuses bf16 on the CPU.
+pub(crate) const BF16_ON_CPU: &str = "dtype = \"bf16\" runs SAM on a GPU only: candle's CPU \
+     convolutions have no bf16 kernels; on the CPU use \"f32\" (fastest there) or \"f16\"";
+
 /// SAM with the automatic mask generator and the fill-in refinement; see the
 /// [module documentation](self).
 #[derive(Debug)]
@@ -400,6 +411,9 @@ impl SamProposer {
     /// [`BackendError::DeviceUnavailable`] for a `device` that cannot run it here.
     pub fn from_config(config: SamConfig, ctx: &BuildContext) -> Result<Self, BackendError> {
         config.generator.check()?;
+        if config.dtype == crate::ModelDtype::Bf16 && config.device == crate::ComputeDevice::Cpu {
+            return Err(BackendError::InvalidParams(BF16_ON_CPU.to_owned()));
+        }
         let params = config.generator.clone();
         let variant = config.variant;
         let Some(weights) = config.weights.as_deref() else {
@@ -431,7 +445,7 @@ impl SamProposer {
         };
         let tensors = candle_core::safetensors::load(&path, &device)
             .map_err(|e| invalid(format!("not a readable safetensors file: {e}")))?;
-        let vb = VarBuilder::from_tensors(tensors, DType::F32, &device);
+        let vb = VarBuilder::from_tensors(tensors, config.dtype.candle(), &device);
         let model = SamModel::new(vb, &variant.encoder()).map_err(|e| {
             invalid(format!(
                 "does not hold {} weights with the official tensor names (variant = \"{}\"): {e}",
@@ -497,11 +511,13 @@ impl SamProposer {
         let masks = masks
             .narrow(1, 1, 3)
             .and_then(|m| m.flatten_all())
+            .and_then(|m| m.to_dtype(DType::F32))
             .and_then(|m| m.to_vec1::<f32>())
             .map_err(inference("reading the mask logits"))?;
         let ious = ious
             .narrow(1, 1, 3)
             .and_then(|m| m.flatten_all())
+            .and_then(|m| m.to_dtype(DType::F32))
             .and_then(|m| m.to_vec1::<f32>())
             .map_err(inference("reading the IoU predictions"))?;
         Ok((masks, ious))

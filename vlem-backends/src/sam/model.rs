@@ -50,16 +50,24 @@ pub struct SamModel {
     decoder: MaskDecoder,
     dense_pe: Tensor,
     device: Device,
+    /// What the network computes in (the var builder's type).
+    dtype: DType,
 }
 
 impl SamModel {
     /// Loads the network from a var builder over a checkpoint with the reference's tensor names
-    /// (`image_encoder.*`, `prompt_encoder.*`, `mask_decoder.*`).
+    /// (`image_encoder.*`, `prompt_encoder.*`, `mask_decoder.*`); it computes in the builder's
+    /// type.
     ///
     /// # Errors
-    /// A missing tensor or one of the wrong shape.
+    /// A missing tensor or one of the wrong shape; bf16 on the CPU (candle has no bf16
+    /// convolutions there).
     pub fn new(vb: VarBuilder, encoder: &EncoderConfig) -> candle_core::Result<Self> {
         let device = vb.device().clone();
+        let dtype = vb.dtype();
+        if device.is_cpu() && dtype == DType::BF16 {
+            candle_core::bail!("{}", super::BF16_ON_CPU);
+        }
         let encoder = match encoder {
             EncoderConfig::Vit(cfg) => {
                 ImageEncoder::Vit(Box::new(ImageEncoderVit::new(vb.pp("image_encoder"), cfg)?))
@@ -77,6 +85,7 @@ impl SamModel {
             decoder,
             dense_pe,
             device,
+            dtype,
         })
     }
 
@@ -103,12 +112,13 @@ impl SamModel {
         })
     }
 
-    /// `(1, 256, 64, 64)` image embeddings of a preprocessed input.
+    /// `(1, 256, 64, 64)` image embeddings of a preprocessed input (any float type), in the
+    /// network's [`dtype`](Self::dtype).
     ///
     /// # Errors
     /// Failures of the network.
     pub fn embed(&self, input: &Tensor) -> candle_core::Result<Tensor> {
-        let input = input.to_dtype(DType::F32)?;
+        let input = input.to_dtype(self.dtype)?;
         match &self.encoder {
             ImageEncoder::Vit(e) => e.forward(&input),
             ImageEncoder::TinyVit(e) => e.forward(&input),
@@ -117,7 +127,8 @@ impl SamModel {
 
     /// Decodes one single-foreground-point prompt per entry of `points` (input-scale pixel
     /// coordinates `[x, y]`): all four mask logits `(B, 4, 256, 256)` and IoU predictions
-    /// `(B, 4)`; index 0 is the single-mask output, 1-3 the multimask outputs.
+    /// `(B, 4)`, in the network's type; index 0 is the single-mask output, 1-3 the multimask
+    /// outputs.
     ///
     /// # Errors
     /// Failures of the network.
@@ -135,5 +146,10 @@ impl SamModel {
     /// The device the network runs on.
     pub fn device(&self) -> &Device {
         &self.device
+    }
+
+    /// The type the network computes in, and its outputs'.
+    pub fn dtype(&self) -> DType {
+        self.dtype
     }
 }

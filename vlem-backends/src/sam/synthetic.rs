@@ -79,7 +79,13 @@ impl SyntheticWeights {
 
     /// A var builder (f32) over a clone of this backend (sharing its log).
     pub fn var_builder(&self, device: &Device) -> VarBuilder<'static> {
-        VarBuilder::from_backend(Box::new(self.clone()), DType::F32, device.clone())
+        self.var_builder_in(device, DType::F32)
+    }
+
+    /// A var builder handing out the tensors in `dtype` (the values are made in f32 and
+    /// converted, so each type holds the f32 weights as closely as it can).
+    pub fn var_builder_in(&self, device: &Device, dtype: DType) -> VarBuilder<'static> {
+        VarBuilder::from_backend(Box::new(self.clone()), dtype, device.clone())
     }
 
     /// Every tensor requested so far, in request order.
