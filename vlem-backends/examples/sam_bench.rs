@@ -10,7 +10,8 @@
 //! RAYON_NUM_THREADS=2 cargo run --release -p vlem-backends --features sam --example sam_bench -- \
 //!     --variant mobile-sam --points-per-side 32,16 --refine on,off
 //! ```
-//! `VLEM_BENCH_DEVICE=cuda` runs the network on a GPU (build with feature `cuda`).
+//! `VLEM_BENCH_DEVICE=cuda` runs the network on a GPU (build with feature `cuda`), `VLEM_BENCH_DTYPE=f16`
+//! or `bf16` in half precision.
 
 use std::time::Instant;
 
@@ -83,15 +84,16 @@ fn main() -> Result<()> {
 
     let threads = std::env::var("RAYON_NUM_THREADS").unwrap_or_else(|_| "all".to_owned());
     let device = vlem_backends::ComputeDevice::from_env("VLEM_BENCH_DEVICE")?.open()?;
+    let dtype = vlem_backends::ModelDtype::from_env("VLEM_BENCH_DTYPE")?.candle();
     let start = Instant::now();
     let model = match &weights {
         Some(path) => {
             let tensors = candle_core::safetensors::load(path, &device)?;
-            let vb = candle_nn::VarBuilder::from_tensors(tensors, candle_core::DType::F32, &device);
+            let vb = candle_nn::VarBuilder::from_tensors(tensors, dtype, &device);
             SamModel::new(vb, &variant.encoder())?
         }
         None => SamModel::new(
-            SyntheticWeights::new().var_builder(&device),
+            SyntheticWeights::new().var_builder_in(&device, dtype),
             &variant.encoder(),
         )?,
     };

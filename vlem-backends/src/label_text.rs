@@ -26,6 +26,7 @@
 //! # model_dir = "models/all-MiniLM-L6-v2" # else $VLEM_MINILM_DIR, else the pip package
 //! # templates = ["{}", "a photo of a {}"]   # default: the text alone
 //! # device = "cpu"                        # "cuda", "cuda:N" with feature `cuda`
+//! # dtype = "f32"                         # the only type: see `LabelTextConfig::dtype`
 //! ```
 
 use std::collections::HashMap;
@@ -62,6 +63,10 @@ pub struct LabelTextConfig {
     /// Where the sentence encoder runs: `"cpu"` (default), `"cuda"` or `"cuda:N"` (feature
     /// `cuda`).
     pub device: crate::ComputeDevice,
+    /// `"f32"` only, the key every candle model shares: candle-transformers' BERT builds its
+    /// attention mask as `(1 − mask) · f32::MIN` in the model's type, which is `0 · −∞ = NaN` in
+    /// f16 and bf16; and a 22M-parameter text model run once per query has no time to gain.
+    pub dtype: crate::ModelDtype,
 }
 
 impl Default for LabelTextConfig {
@@ -70,6 +75,7 @@ impl Default for LabelTextConfig {
             model_dir: None,
             templates: crate::prompts::default_templates(),
             device: crate::ComputeDevice::Cpu,
+            dtype: crate::ModelDtype::F32,
         }
     }
 }
@@ -100,9 +106,18 @@ impl LabelTextEncoder {
     /// Builds the encoder from its parameters: finds and loads the model, checks the templates.
     ///
     /// # Errors
-    /// As [`crate::ComputeDevice::open`], [`crate::minilm::locate_model_dir`],
+    /// [`BackendError::InvalidParams`] for a `dtype` other than f32; as
+    /// [`crate::ComputeDevice::open`], [`crate::minilm::locate_model_dir`],
     /// [`SentenceEncoder::load`] and [`LabelTextEncoder::new`].
     pub fn from_config(config: LabelTextConfig, ctx: &BuildContext) -> Result<Self, BackendError> {
+        if config.dtype != crate::ModelDtype::F32 {
+            return Err(BackendError::InvalidParams(format!(
+                "dtype = {:?}: label-text runs in f32 only (candle's BERT turns its attention \
+                 mask into NaN in half precision; the text model is small and runs once per \
+                 query, so half would gain nothing)",
+                config.dtype
+            )));
+        }
         let model_dir = config.model_dir.as_deref().map(|p| ctx.resolve(p));
         let sentence =
             SentenceEncoder::locate_and_load(model_dir.as_deref(), &config.device.open()?)?;

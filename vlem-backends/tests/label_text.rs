@@ -236,6 +236,24 @@ fn the_registry_builds_it_and_resolves_model_dir_against_the_config_folder() {
     assert!(built.needs_labels());
 }
 
+/// Half precision is refused with the reason (candle's BERT makes NaN of its mask in it).
+#[test]
+fn half_precision_is_refused_with_the_reason() {
+    let registry = Registry::global().unwrap();
+    for dtype in ["f16", "bf16"] {
+        let mut stage = StageConfig::named("label-text");
+        stage
+            .params
+            .insert("dtype".into(), toml::Value::String(dtype.into()));
+        let err = registry
+            .build_encoder(&stage, &BuildContext::default())
+            .map(|_| ())
+            .unwrap_err()
+            .to_string();
+        assert!(err.contains("f32 only") && err.contains("NaN"), "{err}");
+    }
+}
+
 #[test]
 fn a_model_dir_without_the_model_fails_with_the_install_hint() {
     let registry = Registry::global().unwrap();

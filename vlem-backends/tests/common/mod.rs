@@ -45,7 +45,8 @@ pub fn tolerance(cpu: f32) -> f32 {
 }
 
 /// The least cosine between matching rows of `dim` values of `got` and `want` (row-major, the
-/// same length): how half-precision embeddings are held to their f32 goldens.
+/// same length): how half-precision embeddings are held to their f32 goldens. A row with a value
+/// that is not finite counts as -1 (`f32::min` alone would skip a NaN).
 pub fn least_row_cosine(got: &[f32], want: &[f32], dim: usize) -> f32 {
     assert_eq!(got.len(), want.len(), "rows of different lengths");
     assert!(
@@ -58,7 +59,8 @@ pub fn least_row_cosine(got: &[f32], want: &[f32], dim: usize) -> f32 {
         .zip(want.chunks(dim))
         .map(|(g, w)| {
             let dot: f32 = g.iter().zip(w).map(|(a, b)| a * b).sum();
-            dot / (norm(g) * norm(w)).max(f32::MIN_POSITIVE)
+            let cosine = dot / (norm(g) * norm(w)).max(f32::MIN_POSITIVE);
+            if cosine.is_finite() { cosine } else { -1.0 }
         })
         .fold(1.0, f32::min)
 }
