@@ -30,13 +30,18 @@ def main() -> None:
                    help="also time the text tower on this many 16-token texts (as clip_bench)")
     p.add_argument("--repeat", type=int, default=5)
     p.add_argument("--device", default="cpu", help="cpu, cuda or cuda:N")
+    p.add_argument("--dtype", default="f32", choices=["f32", "f16", "bf16"],
+                   help="the model's and the input's type (half: .half() / bfloat16, as vlem's)")
     args = p.parse_args()
     torch.set_num_threads(args.threads)
-    model = CLIPModel.from_pretrained(args.model_dir, dtype=torch.float32).eval().to(args.device)
+    dtype = {"f32": torch.float32, "f16": torch.float16, "bf16": torch.bfloat16}[args.dtype]
+    # SDPA: PyTorch's fused attention, transformers' default where it is available.
+    model = CLIPModel.from_pretrained(args.model_dir, dtype=dtype, attn_implementation="sdpa")
+    model = model.eval().to(args.device)
     size = model.config.vision_config.image_size
     gen = torch.Generator().manual_seed(0)
     for batch in args.batch:
-        x = torch.randn(batch, 3, size, size, generator=gen).to(args.device)
+        x = torch.randn(batch, 3, size, size, generator=gen).to(args.device, dtype)
         times = timed(lambda: model.get_image_features(pixel_values=x), args)
         best = min(times)
         print(

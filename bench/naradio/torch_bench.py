@@ -1,5 +1,5 @@
 #!/usr/bin/env python3
-"""Milliseconds per 640x480 frame of a RADIOv2.5-sized ViT trunk in PyTorch (timm), CPU, f32.
+"""Milliseconds per 640x480 frame of a RADIOv2.5-sized ViT trunk in PyTorch (timm), f32 or half.
 
 The reference for vlem-backends/examples/naradio_bench.rs: timm's VisionTransformer in the
 RADIOv2.5 B/16 or L/16 shape (RADIO's trunk is this timm model) with 8 prefix tokens (timm: 1
@@ -32,14 +32,18 @@ def main() -> None:
     p.add_argument("--model", nargs="+", default=["b", "l"], choices=sorted(SHAPES))
     p.add_argument("--repeat", type=int, default=2)
     p.add_argument("--device", default="cpu", help="cpu, cuda or cuda:N")
+    p.add_argument("--dtype", default="f32", choices=["f32", "f16", "bf16"],
+                   help="the model's and the input's type (half: .half() / bfloat16, as vlem's)")
     args = p.parse_args()
     torch.set_num_threads(args.threads)
-    x = torch.randn(1, 3, 480, 640, generator=torch.Generator().manual_seed(0)).to(args.device)
+    dtype = {"f32": torch.float32, "f16": torch.float16, "bf16": torch.bfloat16}[args.dtype]
+    x = torch.randn(1, 3, 480, 640, generator=torch.Generator().manual_seed(0))
+    x = x.to(args.device, dtype)
     for name in args.model:
         model = timm.create_model(
             SHAPES[name], pretrained=False, num_classes=0, dynamic_img_size=True,
             reg_tokens=7, global_pool="",
-        ).eval().to(args.device)
+        ).eval().to(args.device, dtype)
         times = []
         with torch.inference_mode():
             for i in range(args.repeat + 1):

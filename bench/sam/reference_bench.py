@@ -36,7 +36,11 @@ def main():
     ap.add_argument("--points-per-batch", type=int, default=32)
     ap.add_argument("--threads", type=int, default=2)
     ap.add_argument("--device", default="cpu", help="cpu, cuda or cuda:N")
+    ap.add_argument("--dtype", default="f32", choices=["f32", "f16", "bf16"],
+                    help="half: the network under torch.autocast in that type (the package feeds "
+                         "f32 images and prompts, so .half() alone does not run)")
     a = ap.parse_args()
+    half = {"f32": None, "f16": torch.float16, "bf16": torch.bfloat16}[a.dtype]
     torch.set_num_threads(a.threads)
     if a.variant == "vit-b":
         from segment_anything import SamAutomaticMaskGenerator, sam_model_registry
@@ -60,7 +64,8 @@ def main():
         min_mask_region_area=0,
     )
     image = frame()
-    with torch.inference_mode():
+    autocast = torch.autocast(a.device.split(":")[0], dtype=half, enabled=half is not None)
+    with torch.inference_mode(), autocast:
         t = time.perf_counter()
         gen.predictor.set_image(image)
         if a.device.startswith("cuda"):
@@ -72,6 +77,7 @@ def main():
     print(json.dumps({
         "impl": package, "torch": torch.__version__, "variant": a.variant,
         "points_per_side": a.points_per_side, "threads": a.threads, "device": a.device,
+        "dtype": a.dtype,
         "image_encoder_s": round(encoder, 2), "generator_s": round(total, 2), "masks": len(masks),
     }))
 

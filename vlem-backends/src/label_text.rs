@@ -27,6 +27,7 @@
 //! # templates = ["{}", "a photo of a {}"]   # default: the text alone
 //! # device = "cpu"                        # "cuda", "cuda:N" with feature `cuda`
 //! # dtype = "f32"                         # the only type: see `LabelTextConfig::dtype`
+//! # tf32 = true                           # on a GPU, f32 matrix products in TF32 (off by default)
 //! ```
 
 use std::collections::HashMap;
@@ -67,6 +68,10 @@ pub struct LabelTextConfig {
     /// attention mask as `(1 − mask) · f32::MIN` in the model's type, which is `0 · −∞ = NaN` in
     /// f16 and bf16; and a 22M-parameter text model run once per query has no time to gain.
     pub dtype: crate::ModelDtype,
+    /// `true`: on a GPU, f32 matrix products run on TF32 tensor cores (faster, 10-bit mantissa
+    /// inputs); `false`: they do not; unset (default): left as it is, off unless a model asked.
+    /// One setting per process (see [`crate::ComputeDevice::open_for`]).
+    pub tf32: Option<bool>,
 }
 
 impl Default for LabelTextConfig {
@@ -76,6 +81,7 @@ impl Default for LabelTextConfig {
             templates: crate::prompts::default_templates(),
             device: crate::ComputeDevice::Cpu,
             dtype: crate::ModelDtype::F32,
+            tf32: None,
         }
     }
 }
@@ -112,15 +118,15 @@ impl LabelTextEncoder {
     pub fn from_config(config: LabelTextConfig, ctx: &BuildContext) -> Result<Self, BackendError> {
         if config.dtype != crate::ModelDtype::F32 {
             return Err(BackendError::InvalidParams(format!(
-                "dtype = {:?}: label-text runs in f32 only (candle's BERT turns its attention \
+                "dtype = \"{}\": label-text runs in f32 only (candle's BERT turns its attention \
                  mask into NaN in half precision; the text model is small and runs once per \
                  query, so half would gain nothing)",
                 config.dtype
             )));
         }
         let model_dir = config.model_dir.as_deref().map(|p| ctx.resolve(p));
-        let sentence =
-            SentenceEncoder::locate_and_load(model_dir.as_deref(), &config.device.open()?)?;
+        let device = config.device.open_for(config.dtype, config.tf32)?;
+        let sentence = SentenceEncoder::locate_and_load(model_dir.as_deref(), &device)?;
         Self::new(sentence, config.templates)
     }
 

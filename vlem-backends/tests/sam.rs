@@ -26,7 +26,8 @@ use vlem_backends::sam::synthetic::{SyntheticWeights, fnv1a64};
 use vlem_backends::sam::tiny_vit::TinyVitConfig;
 use vlem_backends::sam::vit::VitConfig;
 use vlem_backends::sam::{
-    self, GeneratedMask, GeneratorParams, Pass, SamConfig, SamVariant, amg, generate_masks,
+    self, GeneratedMask, GeneratorParams, MaskFiltering, Pass, SamConfig, SamVariant, amg,
+    generate_masks,
 };
 use vlem_backends::{BackendError, ModelDtype};
 use vlem_core::{BuildContext, RgbImage, StageConfig};
@@ -470,6 +471,84 @@ fn half_precision_networks_agree_with_f32() {
     let vb = SyntheticWeights::new().var_builder_in(&Device::Cpu, DType::BF16);
     let e = SamModel::new(vb, &tiny_vit()).unwrap_err().to_string();
     assert!(e.contains("bf16") && e.contains("GPU"), "{e}");
+}
+
+/// The generator's first filters on the model's device (`MaskFiltering::Device`, a GPU's path,
+/// here on candle's CPU device) against the host's: the same masks, with the thresholds set so
+/// that each filter drops some, the refinement and small-region removal on.
+#[test]
+fn device_filtering_gives_the_host_filterings_masks() {
+    let goldens = read_json("sam_goldens.json");
+    let (w, h) = (
+        goldens["image"]["width"].as_u64().unwrap() as usize,
+        goldens["image"]["height"].as_u64().unwrap() as usize,
+    );
+    let image = test_image(w, h);
+    for (key, encoder) in [("vit", tiny_vit()), ("tiny_vit", tiny_tinyvit())] {
+        let model = SamModel::new(
+            SyntheticWeights::new().var_builder(&common::device()),
+            &encoder,
+        )
+        .unwrap();
+        let open = GeneratorParams {
+            points_per_side: 4,
+            points_per_batch: 5,
+            pred_iou_thresh: 0.0,
+            stability_score_thresh: 0.0,
+            // The synthetic network's logits are small: a small offset spreads the stabilities.
+            stability_score_offset: 0.05,
+            box_nms_thresh: 1.0,
+            min_mask_region_area: 0,
+            refine: false,
+            ..GeneratorParams::default()
+        };
+        let proposer = sam::SamProposer::new(model, open.clone());
+        let all = proposer.generate_with(&image, MaskFiltering::Host).unwrap();
+        let mut ious: Vec<f32> = all.iter().map(|m| m.predicted_iou).collect();
+        let mut stabilities: Vec<f32> = all.iter().map(|m| m.stability_score).collect();
+        ious.sort_by(f32::total_cmp);
+        stabilities.sort_by(f32::total_cmp);
+        let (model, _) = proposer.into_parts();
+        let params = GeneratorParams {
+            pred_iou_thresh: ious[ious.len() / 3],
+            stability_score_thresh: stabilities[stabilities.len() / 3],
+            // The synthetic masks' boxes overlap: NMS (host code either way) would keep one.
+            box_nms_thresh: 1.0,
+            min_mask_region_area: 40,
+            refine: true,
+            refine_points: 6,
+            ..open
+        };
+        let proposer = sam::SamProposer::new(model, params);
+        let host = proposer.generate_with(&image, MaskFiltering::Host).unwrap();
+        let device = proposer
+            .generate_with(&image, MaskFiltering::Device)
+            .unwrap();
+        let grid = host.iter().filter(|m| m.pass == Pass::Grid).count();
+        println!(
+            "{key}: {} masks unfiltered; filtered on the host {} ({grid} of the grid), on the \
+             device {}",
+            all.len(),
+            host.len(),
+            device.len()
+        );
+        assert!(
+            grid > 0 && grid < all.len(),
+            "{key}: the filters dropped none or all"
+        );
+        assert_eq!(host.len(), device.len(), "{key}: mask count");
+        for (a, b) in host.iter().zip(&device) {
+            assert_eq!((a.point, a.pass), (b.point, b.pass), "{key}: order");
+            assert_eq!(a.predicted_iou, b.predicted_iou, "{key}: predicted IoU");
+            assert!(
+                (a.stability_score - b.stability_score).abs() < 1e-3,
+                "{key}: stability"
+            );
+            assert_eq!(a.bbox, b.bbox, "{key}: box");
+            let differ = a.mask.iter().zip(&b.mask).filter(|(x, y)| x != y).count();
+            assert!(differ <= 2, "{key}: {differ} pixels differ");
+        }
+    }
 }
 
 #[test]

@@ -32,6 +32,7 @@
 //! # batch_size = 16         # crops per forward pass
 //! # device = "cpu"          # "cuda", "cuda:N" with feature `cuda`
 //! # dtype = "f32"           # "f16", "bf16": the towers in half precision
+//! # tf32 = true             # on a GPU, f32 matrix products in TF32 (off by default)
 //! ```
 
 pub mod model;
@@ -79,6 +80,10 @@ pub struct ClipEncoderConfig {
     /// What both towers compute in: `"f32"` (default), `"f16"` or `"bf16"` (for a GPU; on the CPU
     /// half precision runs through candle's plain ops, slower than f32's fused kernels).
     pub dtype: crate::ModelDtype,
+    /// `true`: on a GPU, f32 matrix products run on TF32 tensor cores (faster, 10-bit mantissa
+    /// inputs); `false`: they do not; unset (default): left as it is, off unless a model asked.
+    /// One setting per process (see [`crate::ComputeDevice::open_for`]).
+    pub tf32: Option<bool>,
 }
 
 impl Default for ClipEncoderConfig {
@@ -91,6 +96,7 @@ impl Default for ClipEncoderConfig {
             batch_size: DEFAULT_BATCH_SIZE,
             device: crate::ComputeDevice::Cpu,
             dtype: crate::ModelDtype::F32,
+            tf32: None,
         }
     }
 }
@@ -208,7 +214,8 @@ impl ClipEncoder {
     ) -> Result<Self, BackendError> {
         let configured = config.model_dir.as_deref().map(|p| ctx.resolve(p));
         let dir = locate_model_dir(configured.as_deref())?;
-        let model = ClipModel::load(&dir, &config.device.open()?, config.dtype)?;
+        let device = config.device.open_for(config.dtype, config.tf32)?;
+        let model = ClipModel::load(&dir, &device, config.dtype)?;
         let (mean, std) = read_normalisation(&dir)?;
         let size =
             u32::try_from(model.image_size()).map_err(|_| BackendError::InvalidModelFile {

@@ -23,6 +23,17 @@ pub enum ModelDtype {
     Bf16,
 }
 
+impl std::fmt::Display for ModelDtype {
+    /// The name the `dtype` key takes.
+    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
+        f.write_str(match self {
+            Self::F32 => "f32",
+            Self::F16 => "f16",
+            Self::Bf16 => "bf16",
+        })
+    }
+}
+
 impl ModelDtype {
     /// The type named by the environment variable `name` (`f32`, `f16` or `bf16`), f32 when it
     /// is unset or empty: how the benchmarks are told the type to time.

@@ -3,6 +3,7 @@
 //! asked for and what was found.
 
 use super::ComputeDevice;
+use crate::ModelDtype;
 use crate::error::BackendError;
 
 impl ComputeDevice {
@@ -18,7 +19,53 @@ impl ComputeDevice {
             Self::Cuda(index) => open_cuda(self, index),
         }
     }
+
+    /// Opens the device for a model that computes in `dtype`, and applies its section's `tf32`
+    /// key: `true` lets cuBLAS run f32 matrix products on TF32 tensor cores (10-bit mantissa
+    /// inputs, f32 sums), `false` forbids it, unset leaves it as it is. Off unless asked, as in
+    /// PyTorch; like PyTorch's `torch.backends.cuda.matmul.allow_tf32` it is one setting for the
+    /// whole process, so the last model built with the key decides.
+    ///
+    /// # Errors
+    /// [`BackendError::InvalidParams`] for `tf32 = true` on the CPU (nothing to apply it to) or
+    /// with a half-precision `dtype` (whose products are not f32); as [`Self::open`].
+    pub fn open_for(
+        self,
+        dtype: ModelDtype,
+        tf32: Option<bool>,
+    ) -> Result<candle_core::Device, BackendError> {
+        if tf32 == Some(true) {
+            if self == Self::Cpu {
+                return Err(BackendError::InvalidParams(
+                    "tf32 = true speeds up f32 matrix products on an NVIDIA GPU, and device = \
+                     \"cpu\": remove the key or set device = \"cuda\""
+                        .to_owned(),
+                ));
+            }
+            if dtype != ModelDtype::F32 {
+                return Err(BackendError::InvalidParams(format!(
+                    "tf32 = true applies to f32 matrix products, and dtype = \"{dtype}\" computes \
+                     in half precision already: remove one of the two"
+                )));
+            }
+        }
+        let device = self.open()?;
+        if let Some(allow) = tf32 {
+            set_tf32(allow);
+        }
+        Ok(device)
+    }
 }
+
+/// cuBLAS's process-wide TF32 switch for f32 products (candle's).
+#[cfg(feature = "cuda")]
+fn set_tf32(allow: bool) {
+    candle_core::cuda_backend::set_gemm_reduced_precision_f32(allow);
+}
+
+/// Without CUDA no product is a cuBLAS one: nothing to switch.
+#[cfg(not(feature = "cuda"))]
+fn set_tf32(_allow: bool) {}
 
 #[cfg(not(feature = "cuda"))]
 fn open_cuda(asked: ComputeDevice, _index: usize) -> Result<candle_core::Device, BackendError> {

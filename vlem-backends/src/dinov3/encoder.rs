@@ -30,6 +30,7 @@
 //! # templates = ["a photo of a {}."]
 //! # device = "cpu"                   # "cuda", "cuda:N" with feature `cuda`
 //! # dtype = "f32"                     # "f16", "bf16": backbone and heads in half precision
+//! # tf32 = true                       # on a GPU, f32 matrix products in TF32 (off by default)
 //! ```
 
 use std::path::{Path, PathBuf};
@@ -100,6 +101,10 @@ pub struct Dinov3EncoderConfig {
     /// What the backbone and both heads compute in: `"f32"` (default), `"f16"` or `"bf16"` (for
     /// a GPU; on the CPU half precision runs through candle's plain ops, slower than f32's).
     pub dtype: crate::ModelDtype,
+    /// `true`: on a GPU, f32 matrix products run on TF32 tensor cores (faster, 10-bit mantissa
+    /// inputs); `false`: they do not; unset (default): left as it is, off unless a model asked.
+    /// One setting per process (see [`crate::ComputeDevice::open_for`]).
+    pub tf32: Option<bool>,
 }
 
 impl Default for Dinov3EncoderConfig {
@@ -113,6 +118,7 @@ impl Default for Dinov3EncoderConfig {
             text_heads: None,
             device: crate::ComputeDevice::Cpu,
             dtype: crate::ModelDtype::F32,
+            tf32: None,
         }
     }
 }
@@ -286,7 +292,7 @@ impl Dinov3Encoder {
             resolve(&config.dinotxt_weights).as_deref(),
             resolve(&config.bpe_vocab).as_deref(),
         )?;
-        let device = config.device.open()?;
+        let device = config.device.open_for(config.dtype, config.tf32)?;
         let backbone = Dinov3Backbone::load(&files.model_dir, &device, config.dtype)?;
         let heads = DinoTxtHeads::load_pth(
             &files.dinotxt_weights,

@@ -31,6 +31,7 @@
 //! # templates = ["a photo of a {}."]  # default: the 80 OpenAI ImageNet templates
 //! # device = "cpu"                # "cuda", "cuda:N" with feature `cuda`
 //! # dtype = "f32"                 # "f16", "bf16": trunk, adaptor and text tower in half
+//! # tf32 = true                   # on a GPU, f32 matrix products in TF32 (off by default)
 //! ```
 
 pub mod model;
@@ -167,6 +168,10 @@ pub struct NaradioEncoderConfig {
     /// `"bf16"` (for a GPU; on the CPU half precision runs through candle's plain ops, slower
     /// than f32's).
     pub dtype: crate::ModelDtype,
+    /// `true`: on a GPU, f32 matrix products run on TF32 tensor cores (faster, 10-bit mantissa
+    /// inputs); `false`: they do not; unset (default): left as it is, off unless a model asked.
+    /// One setting per process (see [`crate::ComputeDevice::open_for`]).
+    pub tf32: Option<bool>,
 }
 
 impl Default for NaradioEncoderConfig {
@@ -180,6 +185,7 @@ impl Default for NaradioEncoderConfig {
             templates: IMAGENET_TEMPLATES.iter().map(|t| (*t).to_owned()).collect(),
             device: crate::ComputeDevice::Cpu,
             dtype: crate::ModelDtype::F32,
+            tf32: None,
         }
     }
 }
@@ -242,7 +248,7 @@ impl NaradioEncoder {
         }
         let configured = config.model_dir.as_deref().map(|p| ctx.resolve(p));
         let dir = locate_model_dir(configured.as_deref())?;
-        let device = config.device.open()?;
+        let device = config.device.open_for(config.dtype, config.tf32)?;
         let model = RadioModel::load(&dir, &device, config.dtype)?;
         crate::patch_input::check_short_side(
             config.short_side,

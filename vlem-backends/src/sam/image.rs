@@ -220,6 +220,18 @@ impl AxisMap {
     pub fn is_empty(&self) -> bool {
         self.taps.is_empty()
     }
+
+    /// The map as a dense `len × 256` row-major matrix (each row's few taps, zeros elsewhere):
+    /// the form a device applies as one matrix product.
+    pub fn matrix(&self) -> Vec<f32> {
+        let mut m = vec![0f32; self.taps.len() * LOW_RES];
+        for (row, taps) in m.chunks_exact_mut(LOW_RES).zip(&self.taps) {
+            for &(i, w) in taps {
+                row[i] += w;
+            }
+        }
+        m
+    }
 }
 
 /// Upsamples one `256 x 256` logit map to the original image (`xs.len()` wide, `ys.len()` high),

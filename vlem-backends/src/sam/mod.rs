@@ -20,7 +20,8 @@
 //!    masks thresholded at ±`stability_score_offset`) reaches `stability_score_thresh`; box NMS at
 //!    `box_nms_thresh` by predicted IoU; with `min_mask_region_area > 0`, holes and islands
 //!    smaller than that are removed (8-connected components) and NMS runs again preferring
-//!    unchanged masks.
+//!    unchanged masks. On a GPU the upsampling and the two thresholds run there
+//!    ([`MaskFiltering`], `device_masks`), so only the masks that pass cross to the host.
 //! 3. Refinement (`refine = true`): `refine_points` pixels drawn uniformly (seeded by `seed`)
 //!    among those no mask covers are each decoded as a single foreground point and filtered the
 //!    same way (IoU, stability, NMS, small regions); a fill-in mask whose box overlaps a kept
@@ -46,6 +47,7 @@
 //! # seed = 0
 //! # device = "cpu"                         # "cuda", "cuda:N" with feature `cuda`
 //! # dtype = "f32"                          # "f16", "bf16": the network in half precision
+//! # tf32 = true                            # on a GPU, f32 matrix products in TF32 (off by default)
 //! ```
 //!
 //! Weights: the official checkpoints converted to safetensors with their tensor names, by
@@ -53,6 +55,7 @@
 
 pub mod amg;
 pub mod decoder;
+mod device_masks;
 pub mod image;
 mod image_side;
 pub mod layers;
@@ -155,12 +158,17 @@ pub struct SamConfig {
     pub weights: Option<PathBuf>,
     /// Which checkpoint the weights are. Default `"mobile-sam"`.
     pub variant: SamVariant,
-    /// Where the network runs: `"cpu"` (default), `"cuda"` or `"cuda:N"` (feature `cuda`). The
-    /// mask post-processing stays on the CPU; each batch's masks cross once.
+    /// Where the network runs: `"cpu"` (default), `"cuda"` or `"cuda:N"` (feature `cuda`). On a
+    /// GPU the masks' upsampling and thresholds run there too ([`MaskFiltering::Device`]); box
+    /// NMS and small-region removal run on the CPU.
     pub device: crate::ComputeDevice,
     /// What the network computes in: `"f32"` (default), `"f16"` or `"bf16"` (for a GPU; on the
     /// CPU half precision runs through candle's plain ops, slower than f32's fused decoder).
     pub dtype: crate::ModelDtype,
+    /// `true`: on a GPU, f32 matrix products run on TF32 tensor cores (faster, 10-bit mantissa
+    /// inputs); `false`: they do not; unset (default): left as it is, off unless a model asked.
+    /// One setting per process (see [`crate::ComputeDevice::open_for`]).
+    pub tf32: Option<bool>,
     /// The mask generator's parameters: the section's other keys.
     pub generator: GeneratorParams,
 }
@@ -173,6 +181,7 @@ struct ModelKeys {
     variant: SamVariant,
     device: crate::ComputeDevice,
     dtype: crate::ModelDtype,
+    tf32: Option<bool>,
 }
 
 impl TryFrom<toml::Table> for SamConfig {
@@ -182,7 +191,7 @@ impl TryFrom<toml::Table> for SamConfig {
     /// (`deny_unknown_fields`), so a typo is still an error naming it.
     fn try_from(mut section: toml::Table) -> Result<Self, Self::Error> {
         let mut model = toml::Table::new();
-        for key in ["weights", "variant", "device", "dtype"] {
+        for key in ["weights", "variant", "device", "dtype", "tf32"] {
             if let Some(value) = section.remove(key) {
                 model.insert(key.to_owned(), value);
             }
@@ -192,12 +201,14 @@ impl TryFrom<toml::Table> for SamConfig {
             variant,
             device,
             dtype,
+            tf32,
         } = model.try_into()?;
         Ok(Self {
             weights,
             variant,
             device,
             dtype,
+            tf32,
             generator: section.try_into()?,
         })
     }
@@ -438,7 +449,7 @@ impl SamProposer {
                 path,
             });
         }
-        let device = config.device.open()?;
+        let device = config.device.open_for(config.dtype, config.tf32)?;
         let invalid = |reason: String| BackendError::InvalidModelFile {
             path: path.clone(),
             reason,
@@ -477,11 +488,25 @@ impl SamProposer {
         (self.model, self.params)
     }
 
-    /// Every mask of `image` with its record (see the [module documentation](self)).
+    /// Every mask of `image` with its record (see the [module documentation](self)), the masks
+    /// filtered where the network runs: [`MaskFiltering::for_device`].
     ///
     /// # Errors
     /// [`BackendError::Inference`].
     pub fn generate(&self, image: &RgbImage) -> Result<Vec<GeneratedMask>, BackendError> {
+        self.generate_with(image, MaskFiltering::for_device(self.model.device()))
+    }
+
+    /// [`Self::generate`] with the first filters (predicted IoU, stability) where `filtering`
+    /// says: the same masks either way, up to logits within float rounding of 0.
+    ///
+    /// # Errors
+    /// [`BackendError::Inference`].
+    pub fn generate_with(
+        &self,
+        image: &RgbImage,
+        filtering: MaskFiltering,
+    ) -> Result<Vec<GeneratedMask>, BackendError> {
         let (w, h) = (image.width() as usize, image.height() as usize);
         if w == 0 || h == 0 {
             return Ok(Vec::new());
@@ -494,8 +519,25 @@ impl SamProposer {
             .model
             .embed(&pre.tensor)
             .map_err(inference("running the image encoder"))?;
-        let mut decode = |points: &[[f32; 2]]| self.decode_multimask(&embeddings, points);
-        generate_masks(&self.params, (w, h), pre.input, &mut decode)
+        match filtering {
+            MaskFiltering::Host => {
+                let mut decode = |points: &[[f32; 2]]| self.decode_multimask(&embeddings, points);
+                generate_masks(&self.params, (w, h), pre.input, &mut decode)
+            }
+            MaskFiltering::Device => {
+                let frame = Frame::new((w, h), pre.input);
+                let device = device_masks::DeviceMasks::new(&self.model, &embeddings, &frame)
+                    .map_err(inference("the mask filters' upsampling matrices"))?;
+                let mut candidates = |p: &GeneratorParams,
+                                      frame: &Frame,
+                                      points: &[[f64; 2]],
+                                      input_points: &[[f32; 2]],
+                                      pass: Pass| {
+                    device.candidates(p, frame, points, input_points, pass)
+                };
+                generate_with(&self.params, &frame, &mut candidates)
+            }
+        }
     }
 
     /// The multimask outputs (masks 1-3) of single-point prompts, as flat vectors.
@@ -528,6 +570,42 @@ impl SamProposer {
 /// `256 x 256` logit maps per prompt (flat, prompt-major) and three predicted IoUs per prompt.
 pub type DecodeFn<'a> = dyn FnMut(&[[f32; 2]]) -> Result<(Vec<f32>, Vec<f32>), BackendError> + 'a;
 
+/// Where the generator's first filters run: each prompt's three masks are upsampled to the image
+/// and held to the predicted-IoU and stability thresholds. Box NMS and small-region removal run
+/// on the host either way, over the masks that passed.
+#[derive(Clone, Copy, Debug, PartialEq, Eq)]
+pub enum MaskFiltering {
+    /// Every mask's low-resolution logits cross to the host, and those that pass the predicted
+    /// IoU are upsampled there by their few taps per pixel: the CPU's fastest path.
+    Host,
+    /// On the model's device: only the predicted IoUs cross first; the masks that pass are
+    /// upsampled there (two matrix products), their stability counted there, and only the
+    /// survivors cross, as one byte per pixel: a GPU's path (tested on the CPU).
+    Device,
+}
+
+impl MaskFiltering {
+    /// [`Self::Host`] for the CPU, [`Self::Device`] for a GPU.
+    pub fn for_device(device: &candle_core::Device) -> Self {
+        if device.is_cpu() {
+            Self::Host
+        } else {
+            Self::Device
+        }
+    }
+}
+
+/// The candidates of one batch of prompts (`points` in image pixels, `input_points` the same in
+/// input pixels): each mask whose predicted IoU and stability pass, cropped to its box.
+type CandidatesFn<'a> = dyn FnMut(
+        &GeneratorParams,
+        &Frame,
+        &[[f64; 2]],
+        &[[f32; 2]],
+        Pass,
+    ) -> Result<Vec<GeneratedMask>, BackendError>
+    + 'a;
+
 /// The automatic mask generator and the refinement (steps 2-3 of the
 /// [module documentation](self)) over any decoder: an image of `(width, height)` that was resized
 /// to `input` = `(height, width)` for the network.
@@ -543,18 +621,28 @@ pub fn generate_masks(
     if w == 0 || h == 0 {
         return Ok(Vec::new());
     }
-    let frame = Frame {
-        width: w,
-        height: h,
-        scale: [input.1 as f64 / w as f64, input.0 as f64 / h as f64],
-        xs: AxisMap::new(input.1, w),
-        ys: AxisMap::new(input.0, h),
-    };
+    let frame = Frame::new((w, h), input);
+    let mut candidates =
+        |p: &GeneratorParams,
+         frame: &Frame,
+         points: &[[f64; 2]],
+         input_points: &[[f32; 2]],
+         pass: Pass| { host_candidates(p, frame, points, input_points, pass, decode) };
+    generate_with(params, &frame, &mut candidates)
+}
+
+/// [`generate_masks`] over any source of candidates.
+fn generate_with(
+    params: &GeneratorParams,
+    frame: &Frame,
+    candidates: &mut CandidatesFn<'_>,
+) -> Result<Vec<GeneratedMask>, BackendError> {
+    let (w, h) = (frame.width, frame.height);
     let grid: Vec<[f64; 2]> = amg::point_grid(params.points_per_side)
         .into_iter()
         .map(|[x, y]| [x * w as f64, y * h as f64])
         .collect();
-    let mut masks = masks_for_points(params, &frame, &grid, Pass::Grid, decode)?;
+    let mut masks = masks_for_points(params, frame, &grid, Pass::Grid, candidates)?;
 
     if params.refine && params.refine_points > 0 {
         let mut covered = vec![false; w * h];
@@ -568,7 +656,7 @@ pub fn generate_masks(
                 .map(|i| [(i % w) as f64, (i / w) as f64])
                 .collect();
         if !points.is_empty() {
-            let fill = masks_for_points(params, &frame, &points, Pass::Refine, decode)?;
+            let fill = masks_for_points(params, frame, &points, Pass::Refine, candidates)?;
             let kept: Vec<GeneratedMask> = fill
                 .into_iter()
                 .filter(|f| {
@@ -583,65 +671,22 @@ pub fn generate_masks(
     Ok(masks)
 }
 
-/// Decodes `points` (image pixels) and filters the masks: predicted IoU, stability, NMS, small
-/// regions.
+/// Decodes `points` (image pixels) in batches and filters the masks: predicted IoU and stability
+/// (by `source`), then NMS and small regions.
 fn masks_for_points(
     p: &GeneratorParams,
     frame: &Frame,
     points: &[[f64; 2]],
     pass: Pass,
-    decode: &mut DecodeFn<'_>,
+    source: &mut CandidatesFn<'_>,
 ) -> Result<Vec<GeneratedMask>, BackendError> {
-    let plane = image::LOW_RES * image::LOW_RES;
     let mut candidates: Vec<GeneratedMask> = Vec::new();
     for chunk in points.chunks(p.points_per_batch.max(1)) {
         let input_points: Vec<[f32; 2]> = chunk
             .iter()
             .map(|[x, y]| [(x * frame.scale[0]) as f32, (y * frame.scale[1]) as f32])
             .collect();
-        let (masks, ious) = decode(&input_points)?;
-        if masks.len() < chunk.len() * 3 * plane || ious.len() < chunk.len() * 3 {
-            return Err(BackendError::Inference {
-                what: "running the mask decoder".to_owned(),
-                source: format!(
-                    "{} logits and {} IoUs for {} prompts",
-                    masks.len(),
-                    ious.len(),
-                    chunk.len()
-                )
-                .into(),
-            });
-        }
-        for (j, (logits, &iou)) in masks.chunks_exact(plane).zip(&ious).enumerate() {
-            // NaN-safe: a prediction that is not above the threshold (or NaN) is dropped.
-            if p.pred_iou_thresh > 0.0
-                && iou.partial_cmp(&p.pred_iou_thresh) != Some(Ordering::Greater)
-            {
-                continue;
-            }
-            let up = image::upsample_logits(logits, &frame.xs, &frame.ys);
-            let stability = amg::stability_score(&up, 0.0, p.stability_score_offset);
-            if p.stability_score_thresh > 0.0
-                && !matches!(
-                    stability.partial_cmp(&p.stability_score_thresh),
-                    Some(Ordering::Greater | Ordering::Equal)
-                )
-            {
-                continue;
-            }
-            let binary: Vec<bool> = up.iter().map(|&l| l > 0.0).collect();
-            let Some((bbox, mask)) = crop_to_box(&binary, frame.width) else {
-                continue;
-            };
-            candidates.push(GeneratedMask {
-                bbox,
-                mask,
-                predicted_iou: iou,
-                stability_score: stability,
-                point: chunk.get(j / 3).copied().unwrap_or([0.0, 0.0]),
-                pass,
-            });
-        }
+        candidates.extend(source(p, frame, chunk, &input_points, pass)?);
     }
     let boxes: Vec<MaskBox> = candidates.iter().map(|c| c.bbox).collect();
     let scores: Vec<f32> = candidates.iter().map(|c| c.predicted_iou).collect();
@@ -652,6 +697,81 @@ fn masks_for_points(
         return Ok(kept);
     }
     Ok(remove_small_regions(p, kept, frame))
+}
+
+/// Whether a predicted IoU passes `pred_iou_thresh` (NaN-safe: one that is not above it, or NaN,
+/// does not).
+fn passes_predicted_iou(p: &GeneratorParams, iou: f32) -> bool {
+    p.pred_iou_thresh <= 0.0 || iou.partial_cmp(&p.pred_iou_thresh) == Some(Ordering::Greater)
+}
+
+/// Whether a stability score passes `stability_score_thresh` (NaN-safe).
+fn passes_stability(p: &GeneratorParams, stability: f32) -> bool {
+    p.stability_score_thresh <= 0.0
+        || matches!(
+            stability.partial_cmp(&p.stability_score_thresh),
+            Some(Ordering::Greater | Ordering::Equal)
+        )
+}
+
+/// A candidate from a full-frame binary mask, `None` when it is empty.
+fn candidate(
+    binary: &[bool],
+    frame: &Frame,
+    (predicted_iou, stability_score): (f32, f32),
+    point: [f64; 2],
+    pass: Pass,
+) -> Option<GeneratedMask> {
+    let (bbox, mask) = crop_to_box(binary, frame.width)?;
+    Some(GeneratedMask {
+        bbox,
+        mask,
+        predicted_iou,
+        stability_score,
+        point,
+        pass,
+    })
+}
+
+/// The candidates of one batch from a host decoder: every mask's logits on the host, upsampled
+/// there when its predicted IoU passes ([`MaskFiltering::Host`]).
+fn host_candidates(
+    p: &GeneratorParams,
+    frame: &Frame,
+    points: &[[f64; 2]],
+    input_points: &[[f32; 2]],
+    pass: Pass,
+    decode: &mut DecodeFn<'_>,
+) -> Result<Vec<GeneratedMask>, BackendError> {
+    let plane = image::LOW_RES * image::LOW_RES;
+    let (masks, ious) = decode(input_points)?;
+    if masks.len() < points.len() * 3 * plane || ious.len() < points.len() * 3 {
+        return Err(BackendError::Inference {
+            what: "running the mask decoder".to_owned(),
+            source: format!(
+                "{} logits and {} IoUs for {} prompts",
+                masks.len(),
+                ious.len(),
+                points.len()
+            )
+            .into(),
+        });
+    }
+    let mut out = Vec::new();
+    for (j, (logits, &iou)) in masks.chunks_exact(plane).zip(&ious).enumerate() {
+        if !passes_predicted_iou(p, iou) {
+            continue;
+        }
+        let up = image::upsample_logits(logits, &frame.xs, &frame.ys);
+        let stability = amg::stability_score(&up, 0.0, p.stability_score_offset);
+        if !passes_stability(p, stability) {
+            continue;
+        }
+        let binary: Vec<bool> = up.iter().map(|&l| l > 0.0).collect();
+        let point = points.get(j / 3).copied().unwrap_or([0.0, 0.0]);
+        out.extend(candidate(&binary, frame, (iou, stability), point, pass));
+    }
+    Ok(out)
 }
 
 /// The reference's `postprocess_small_regions`: fills small holes, drops small islands, then
@@ -702,6 +822,19 @@ struct Frame {
     scale: [f64; 2],
     xs: AxisMap,
     ys: AxisMap,
+}
+
+impl Frame {
+    /// An image of `(width, height)` resized to `input` = `(height, width)` for the network.
+    fn new((w, h): (usize, usize), input: (usize, usize)) -> Self {
+        Self {
+            width: w,
+            height: h,
+            scale: [input.1 as f64 / w as f64, input.0 as f64 / h as f64],
+            xs: AxisMap::new(input.1, w),
+            ys: AxisMap::new(input.0, h),
+        }
+    }
 }
 
 impl RegionProposer for SamProposer {
