@@ -27,7 +27,10 @@
 #    parts 3 and 4 also report the peak device memory and the map's device bytes;
 # 5. the map's device table (`[map] device = "cuda"`, f16): fusing one 640x480 frame into a
 #    1M x 512 map and queries of 1 and 8 texts, beside the host table (device-table.log); part 1
-#    runs its tests against the host table on the GPU (maps_device_table).
+#    runs its tests against the host table on the GPU (maps_device_table);
+# 6. per-op profiles (VLEM_PROFILE=1) of CLIP's batch of 32, dinov3, NARADIO B and L and SAM
+#    ViT-B in f32 and f16 (profile-*.log, the top steps in the summary), and an nsys timeline of
+#    NARADIO L where nsys is installed.
 # The summary is OUT_DIR/summary.txt; every log is beside it. Exit status: the number of failed
 # parts (0: all passed).
 set -uo pipefail
@@ -42,7 +45,7 @@ SUMMARY=$OUT/summary.txt
 say() { echo "$*" | tee -a "$SUMMARY"; }
 failed=0
 start=$SECONDS
-PARTS=" ${VLEM_GPU_CHECK_PARTS:-1 2 3 4 5} "
+PARTS=" ${VLEM_GPU_CHECK_PARTS:-1 2 3 4 5 6} "
 wanted() { [[ $PARTS == *" $1 "* ]]; }
 
 if [ ! -f "$PACKED/payload.tar.xz" ]; then
@@ -224,6 +227,37 @@ if wanted 5; then
     else
         say "   FAILED: $(tail -n 3 "$OUT/device-table.log" | tr '\n' ' ')"
         failed=$((failed + 1))
+    fi
+fi
+if wanted 6; then
+    say "== 6. per-op profiles (VLEM_PROFILE=1: the device synchronised around each step) ($((SECONDS - start)) s so far)"
+    model=/tmp/clip-vit-b16-random
+    [ -f "$model/model.safetensors" ] || python3 bench/clip/make_random_b16.py "$model" >/dev/null
+    for dtype in f32 f16; do
+        for run in "clip-32:clip_bench $model --batch 32 --repeat 3" "dinov3:dinov3_bench 448 3" \
+            "naradio-b:naradio_bench b 3" "naradio-l:naradio_bench l 3" \
+            "sam-vit-b:sam_bench --variant vit-b --points-per-side 16 --refine off"; do
+            name=${run%%:*}
+            # shellcheck disable=SC2086 # the arguments are words
+            if VLEM_PROFILE=1 VLEM_BENCH_DEVICE=cuda VLEM_BENCH_DTYPE=$dtype timeout 150 \
+                "$G/bin/examples/"${run#*:} >"$OUT/profile-$name-$dtype.log" 2>&1; then
+                say "   $name $dtype, the three most expensive steps:"
+                grep -A5 '^| step' "$OUT/profile-$name-$dtype.log" | tail -n 3 | sed 's/^/     /' |
+                    tee -a "$SUMMARY"
+            else
+                say "   $name $dtype: FAILED: $(tail -n 3 "$OUT/profile-$name-$dtype.log" | tr '\n' ' ')"
+                failed=$((failed + 1))
+            fi
+        done
+    done
+    # A timeline of one model, where NVIDIA's profiler is installed.
+    if command -v nsys >/dev/null; then
+        timeout 150 nsys profile --stats=true --force-overwrite true -o "$OUT/nsys-naradio-l" \
+            env VLEM_BENCH_DEVICE=cuda "$G/bin/examples/naradio_bench" l 3 \
+            >"$OUT/nsys-naradio-l.log" 2>&1 && say "   nsys: $OUT/nsys-naradio-l.log" ||
+            say "   nsys failed: $(tail -n 2 "$OUT/nsys-naradio-l.log" | tr '\n' ' ')"
+    else
+        say "   nsys: not installed here"
     fi
 fi
 say "== done in $((SECONDS - start)) s, $failed part(s) failed"

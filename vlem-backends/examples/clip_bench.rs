@@ -1,6 +1,7 @@
 //! Images per second of the CLIP image tower (`ClipModel::image_features`) on candle, on the CPU
 //! or, with `VLEM_BENCH_DEVICE=cuda` in a build with feature `cuda`, a GPU; in half precision
 //! with `VLEM_BENCH_DTYPE=f16` or `bf16`.
+//! `VLEM_PROFILE=1` adds a per-op profile (`vlem_backends::profile`) at the end.
 //!
 //! ```text
 //! python3 bench/clip/make_random_b16.py /tmp/clip-vit-b16-random   # random ViT-B/16, HF layout
@@ -111,6 +112,11 @@ fn main() -> anyhow::Result<()> {
             "candle threads={threads} text={n}x{TEXT_TOKENS}: best {:.1} ms/call",
             best * 1e3
         );
+    }
+    if vlem_backends::profile::enabled() {
+        // The steps' times over every call above, the warm-up included.
+        println!("per-op profile (the device synchronised around each step):");
+        print!("{}", vlem_backends::profile::table());
     }
     Ok(())
 }

@@ -13,6 +13,7 @@
 //! and the timed frames per size (default 3, after one warm-up frame). `VLEM_BENCH_DEVICE=cuda`
 //! runs it on a GPU (build with feature `cuda`); `VLEM_BENCH_DTYPE=f16` or `bf16` in half
 //! precision.
+//! `VLEM_PROFILE=1` adds a per-op profile (`vlem_backends::profile`) at the end.
 
 use std::collections::HashMap;
 use std::time::Instant;
@@ -218,6 +219,11 @@ fn main() -> Result<()> {
             "threads {threads}  short side {side}: input {w}x{h} ({} patches)  {per_frame:.1} ms/frame  text query {text:.0} ms",
             (w / 16) * (h / 16)
         );
+    }
+    if vlem_backends::profile::enabled() {
+        // The steps' times over every call above, the warm-up included.
+        println!("per-op profile (the device synchronised around each step):");
+        print!("{}", vlem_backends::profile::table());
     }
     Ok(())
 }

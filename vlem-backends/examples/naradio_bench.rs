@@ -3,6 +3,7 @@
 //! (speed does not depend on the values). The frame is fed as RayFronts feeds it: 640 x 480, a
 //! 40 x 30 patch grid. Threads: set `RAYON_NUM_THREADS`; `VLEM_BENCH_DEVICE=cuda` runs it on a
 //! GPU (build with feature `cuda`); `VLEM_BENCH_DTYPE=f16` or `bf16` in half precision.
+//! `VLEM_PROFILE=1` adds a per-op profile (`vlem_backends::profile`) at the end.
 //!
 //! ```text
 //! RAYON_NUM_THREADS=1 cargo run --release -p vlem-backends --features naradio --example naradio_bench -- [b|l|both] [iterations] [TEXT_DIR]
@@ -94,6 +95,11 @@ fn main() -> anyhow::Result<()> {
     }
     if let Some(dir) = text_dir {
         time_query(&dir, &device)?;
+    }
+    if vlem_backends::profile::enabled() {
+        // The steps' times over every call above, the warm-up included.
+        println!("per-op profile (the device synchronised around each step):");
+        print!("{}", vlem_backends::profile::table());
     }
     Ok(())
 }

@@ -10,8 +10,9 @@
 //! RAYON_NUM_THREADS=2 cargo run --release -p vlem-backends --features sam --example sam_bench -- \
 //!     --variant mobile-sam --points-per-side 32,16 --refine on,off
 //! ```
-//! `VLEM_BENCH_DEVICE=cuda` runs the network on a GPU (build with feature `cuda`), `VLEM_BENCH_DTYPE=f16`
-//! or `bf16` in half precision.
+//! `VLEM_BENCH_DEVICE=cuda` runs the network on a GPU (build with feature `cuda`),
+//! `VLEM_BENCH_DTYPE=f16` or `bf16` in half precision.
+//! `VLEM_PROFILE=1` adds a per-op profile (`vlem_backends::profile`) at the end.
 
 use std::time::Instant;
 
@@ -151,6 +152,11 @@ fn main() -> Result<()> {
             );
             proposer = Some(p);
         }
+    }
+    if vlem_backends::profile::enabled() {
+        // The steps' times over every call above, the warm-up included.
+        println!("per-op profile (the device synchronised around each step):");
+        print!("{}", vlem_backends::profile::table());
     }
     Ok(())
 }

@@ -15,6 +15,7 @@
 use candle_core::{Result, Tensor};
 
 use crate::kernels::softmax_last_dim;
+use crate::profile;
 
 /// Attention scores computed at once at most (floats): 128 MiB.
 pub(crate) const MAX_SCORES: usize = 1 << 25;
@@ -157,19 +158,28 @@ impl<L: Project> Attention<L> {
         rope: Option<&dyn Rotate>,
         scores: Scores<'_>,
     ) -> Result<Tensor> {
-        let (mut q, mut k, v) = self.project_inputs(q_in, k_in, v_in)?;
+        let device = q_in.device();
+        let (mut q, mut k, v) = profile::timed("attention: q, k, v projections", device, || {
+            self.project_inputs(q_in, k_in, v_in)
+        })?;
         if let Some(rope) = rope {
-            q = rope.rotate(&q)?;
-            k = rope.rotate(&k)?;
+            (q, k) = profile::timed("attention: RoPE", device, || {
+                Ok((rope.rotate(&q)?, rope.rotate(&k)?))
+            })?;
         }
         let head_dim = q.dim(3)?;
-        let mixed = scaled_dot_product(&q, &k, &v, (head_dim as f64).powf(-0.5), scores)?;
+        // The step a fused kernel replaces: its share of a frame is what such a kernel can win.
+        let mixed = profile::timed("attention: scores, softmax, mix", device, || {
+            scaled_dot_product(&q, &k, &v, (head_dim as f64).powf(-0.5), scores)
+        })?;
         // A batch of 1 on either side broadcasts: the batch is the product's.
         let (batch, heads, tokens, _) = mixed.dims4()?;
         let mixed = mixed
             .transpose(1, 2)?
             .reshape((batch, tokens, heads * head_dim))?;
-        self.out.project(&mixed)
+        profile::timed("attention: output projection", device, || {
+            self.out.project(&mixed)
+        })
     }
 
     /// Queries, keys and values as `(batch, heads, tokens, head_dim)`, contiguous.

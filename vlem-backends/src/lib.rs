@@ -43,7 +43,8 @@
 //! [`model_files`], the model file lookups; `device`, the `device = "cpu" | "cuda[:N]"` key that
 //! every candle backend and the maps share, its checks and opening (feature `candle`; `cuda`:
 //! candle's CUDA backend), and the sampler of a run's peak device memory; `kernels`, the fused
-//! CPU matrix product and GELU, with candle's own ops on other devices.
+//! CPU matrix product and GELU, with candle's own ops on other devices; [`profile`], per-op
+//! timers of those models (`VLEM_PROFILE=1`), for choosing what to speed up on a device.
 //!
 //! The weight-free reference encoder, and the how-to for writing one, is the plugin
 //! `plugins/vlem-plugin-colour-names`.
@@ -115,6 +116,15 @@ pub mod dinov3;
 
 #[cfg(feature = "naradio")]
 pub mod naradio;
+
+// Per-op timers of the candle models (`VLEM_PROFILE=1`).
+#[cfg(any(
+    feature = "clip",
+    feature = "dinov3",
+    feature = "naradio",
+    feature = "sam"
+))]
+pub mod profile;
 
 // The one attention layer of the candle models.
 #[cfg(any(

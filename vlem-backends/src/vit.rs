@@ -12,6 +12,7 @@ use candle_core::{D, DType, Device, Tensor};
 use candle_nn::{LayerNorm, Module};
 
 use crate::attention::Scores;
+use crate::profile;
 
 /// A transformer MLP activation, from `hidden_act` in `config.json`.
 #[derive(Clone, Copy, Debug, PartialEq, Eq)]
@@ -328,11 +329,12 @@ impl Block {
         };
         let scores = mask.map_or(Scores::Plain, Scores::Bias);
         let rope = rope.map(|r| r as &dyn crate::attention::Rotate);
-        let a = self
-            .attention
-            .forward(&self.norm1.forward(x)?, rope, scores)?;
+        let device = x.device();
+        let normed = profile::timed("norm", device, || self.norm1.forward(x))?;
+        let a = self.attention.forward(&normed, rope, scores)?;
         let x = (x + scaled(a, &self.scale1)?)?;
-        let m = self.mlp.forward(&self.norm2.forward(&x)?)?;
+        let normed = profile::timed("norm", device, || self.norm2.forward(&x))?;
+        let m = profile::timed("mlp", device, || self.mlp.forward(&normed))?;
         x + scaled(m, &self.scale2)?
     }
 }

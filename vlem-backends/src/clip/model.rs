@@ -24,6 +24,7 @@ use crate::ModelDtype;
 use crate::attention::Scores;
 use crate::error::BackendError;
 use crate::hf_config::{HfConfigError, Section};
+use crate::profile;
 
 /// The model's name in messages.
 pub const MODEL: &str = "CLIP";
@@ -367,11 +368,14 @@ impl Layer {
 
     fn forward(&self, x: &Tensor, mask: Option<&Tensor>) -> candle_core::Result<Tensor> {
         let scores = mask.map_or(Scores::Plain, Scores::Bias);
-        let x = (x + self
-            .attention
-            .forward(&self.norm1.forward(x)?, None, scores)?)?;
-        let h = self.fc1.forward(&self.norm2.forward(&x)?)?;
-        let h = self.fc2.forward(&self.act.apply(&h)?)?;
+        let device = x.device();
+        let normed = profile::timed("norm", device, || self.norm1.forward(x))?;
+        let x = (x + self.attention.forward(&normed, None, scores)?)?;
+        let normed = profile::timed("norm", device, || self.norm2.forward(&x))?;
+        let h = profile::timed("mlp", device, || {
+            self.fc2
+                .forward(&self.act.apply(&self.fc1.forward(&normed)?)?)
+        })?;
         x + h
     }
 }

@@ -87,8 +87,10 @@ impl<'a> DeviceMasks<'a> {
         if passed.is_empty() {
             return Ok(Vec::new());
         }
-        let (up, high, union) = self
-            .upsample_and_count(&logits, &passed, p.stability_score_offset)
+        let (up, high, union) =
+            crate::profile::timed("sam: mask filtering", self.model.device(), || {
+                self.upsample_and_count(&logits, &passed, p.stability_score_offset)
+            })
             .map_err(failed("upsampling the masks"))?;
         // Stability as the host computes it: intersections over unions, 0 for an empty union.
         let mut kept = Vec::new();

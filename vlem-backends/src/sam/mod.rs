@@ -47,7 +47,7 @@
 //! # seed = 0
 //! # device = "cpu"                         # "cuda", "cuda:N" with feature `cuda`
 //! # dtype = "f32"                          # "f16", "bf16": the network in half precision
-//! # tf32 = true                            # on a GPU, f32 matrix products in TF32 (off by default)
+//! # tf32 = true                            # on a GPU, f32 products in TF32 (off by default)
 //! ```
 //!
 //! Weights: the official checkpoints converted to safetensors with their tensor names, by
@@ -550,12 +550,15 @@ impl SamProposer {
             .model
             .decode_points(embeddings, points)
             .map_err(inference("running the mask decoder"))?;
-        let masks = masks
-            .narrow(1, 1, 3)
-            .and_then(|m| m.flatten_all())
-            .and_then(|m| m.to_dtype(DType::F32))
-            .and_then(|m| m.to_vec1::<f32>())
-            .map_err(inference("reading the mask logits"))?;
+        let device = self.model.device();
+        let masks = crate::profile::timed("sam: mask logits to the host", device, || {
+            masks
+                .narrow(1, 1, 3)?
+                .flatten_all()?
+                .to_dtype(DType::F32)?
+                .to_vec1::<f32>()
+        })
+        .map_err(inference("reading the mask logits"))?;
         let ious = ious
             .narrow(1, 1, 3)
             .and_then(|m| m.flatten_all())
@@ -757,21 +760,29 @@ fn host_candidates(
             .into(),
         });
     }
-    let mut out = Vec::new();
-    for (j, (logits, &iou)) in masks.chunks_exact(plane).zip(&ious).enumerate() {
-        if !passes_predicted_iou(p, iou) {
-            continue;
+    let filter = || {
+        let mut out = Vec::new();
+        for (j, (logits, &iou)) in masks.chunks_exact(plane).zip(&ious).enumerate() {
+            if !passes_predicted_iou(p, iou) {
+                continue;
+            }
+            let up = image::upsample_logits(logits, &frame.xs, &frame.ys);
+            let stability = amg::stability_score(&up, 0.0, p.stability_score_offset);
+            if !passes_stability(p, stability) {
+                continue;
+            }
+            let binary: Vec<bool> = up.iter().map(|&l| l > 0.0).collect();
+            let point = points.get(j / 3).copied().unwrap_or([0.0, 0.0]);
+            out.extend(candidate(&binary, frame, (iou, stability), point, pass));
         }
-        let up = image::upsample_logits(logits, &frame.xs, &frame.ys);
-        let stability = amg::stability_score(&up, 0.0, p.stability_score_offset);
-        if !passes_stability(p, stability) {
-            continue;
+        Ok(out)
+    };
+    crate::profile::timed("sam: mask filtering", &candle_core::Device::Cpu, filter).map_err(|e| {
+        BackendError::Inference {
+            what: "filtering the masks".to_owned(),
+            source: Box::new(e),
         }
-        let binary: Vec<bool> = up.iter().map(|&l| l > 0.0).collect();
-        let point = points.get(j / 3).copied().unwrap_or([0.0, 0.0]);
-        out.extend(candidate(&binary, frame, (iou, stability), point, pass));
-    }
-    Ok(out)
+    })
 }
 
 /// The reference's `postprocess_small_regions`: fills small holes, drops small islands, then

@@ -119,10 +119,12 @@ impl SamModel {
     /// Failures of the network.
     pub fn embed(&self, input: &Tensor) -> candle_core::Result<Tensor> {
         let input = input.to_dtype(self.dtype)?;
-        match &self.encoder {
-            ImageEncoder::Vit(e) => e.forward(&input),
-            ImageEncoder::TinyVit(e) => e.forward(&input),
-        }
+        crate::profile::timed("sam: image encoder (all)", &self.device, || {
+            match &self.encoder {
+                ImageEncoder::Vit(e) => e.forward(&input),
+                ImageEncoder::TinyVit(e) => e.forward(&input),
+            }
+        })
     }
 
     /// Decodes one single-foreground-point prompt per entry of `points` (input-scale pixel
@@ -137,10 +139,12 @@ impl SamModel {
         embeddings: &Tensor,
         points: &[[f32; 2]],
     ) -> candle_core::Result<(Tensor, Tensor)> {
-        let sparse = self.prompt.embed_points(points)?;
-        let dense = self.prompt.no_mask_dense()?;
-        self.decoder
-            .forward(embeddings, &self.dense_pe, &dense, &sparse)
+        crate::profile::timed("sam: mask decoder (all)", &self.device, || {
+            let sparse = self.prompt.embed_points(points)?;
+            let dense = self.prompt.no_mask_dense()?;
+            self.decoder
+                .forward(embeddings, &self.dense_pe, &dense, &sparse)
+        })
     }
 
     /// The device the network runs on.

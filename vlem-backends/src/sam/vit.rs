@@ -11,6 +11,7 @@ use candle_nn::{Conv2d, Conv2dConfig, LayerNorm, Linear, VarBuilder};
 use super::image::{EMBED_DIM, GRID, INPUT_SIZE};
 use super::layers::{LayerNorm2d, apply_linear, gelu, layer_norm, linear};
 use crate::attention::{Attention, Inputs, Scores};
+use crate::profile;
 
 /// The shape of a SAM ViT image encoder.
 #[derive(Clone, Debug, PartialEq, Eq)]
@@ -122,7 +123,8 @@ impl Block {
 
     fn forward(&self, xs: &Tensor) -> Result<Tensor> {
         let shortcut = xs;
-        let x = self.norm1.forward(xs)?;
+        let device = xs.device();
+        let x = profile::timed("norm", device, || self.norm1.forward(xs))?;
         let x = if self.window > 0 {
             let (b, h, w, c) = x.dims4()?;
             let (windows, hp, wp) = window_partition(&x, self.window)?;
@@ -134,10 +136,10 @@ impl Block {
             self.attend(&x)?
         };
         let x = (shortcut + x)?;
-        let mlp = apply_linear(
-            &self.lin2,
-            &gelu(&apply_linear(&self.lin1, &self.norm2.forward(&x)?)?)?,
-        )?;
+        let normed = profile::timed("norm", device, || self.norm2.forward(&x))?;
+        let mlp = profile::timed("mlp", device, || {
+            apply_linear(&self.lin2, &gelu(&apply_linear(&self.lin1, &normed)?)?)
+        })?;
         x + mlp
     }
 }
