@@ -60,6 +60,30 @@ fn naradio_maps_every_pixel_with_depth_and_queries_score_them() {
     check("synthetic-naradio.toml", "naradio", 40);
 }
 
+/// A `[proposer]` beside a patch encoder is not built or run: a warning says so, in the pipeline
+/// and in each run's report (and so in `stats.json`), instead of nothing.
+#[cfg(all(feature = "naradio", feature = "graph"))]
+#[test]
+fn an_unused_proposer_is_a_warning() {
+    let (mut config, ctx) = config("synthetic-naradio.toml", 1);
+    config.proposer = Some(vlem_core::StageConfig::named("graph"));
+    let mut pipeline = Pipeline::from_config(&config, &ctx).unwrap();
+    let expected = "[proposer] kind = \"graph\" is not used: the encoder `naradio` embeds the \
+                    whole frame, not regions";
+    assert_eq!(pipeline.warnings(), [expected.to_owned()]);
+    let mut source = vlem_datasets::open(&config.dataset, &ctx.config_dir).unwrap();
+    let report = pipeline.run(source.as_mut(), None, &|_| {}).unwrap();
+    assert_eq!(report.warnings.first().map(String::as_str), Some(expected));
+    // Without the section, nothing to say.
+    config.proposer = None;
+    assert!(
+        Pipeline::from_config(&config, &ctx)
+            .unwrap()
+            .warnings()
+            .is_empty()
+    );
+}
+
 /// Runs config `name` (encoder `encoder` of dimension `dim`) and checks the map and the queries.
 fn check(name: &str, encoder_name: &str, dim: usize) {
     let (config, ctx) = config(name, 2);

@@ -210,7 +210,7 @@ fn run(mut config: Config, ctx: BuildContext, out: &Path, options: &RunOptions<'
         pipeline.encoder().map_or("(none)", |e| e.name()),
         pipeline.map().map_or("(none)", |m| m.name()),
     );
-    for warning in source.warnings() {
+    for warning in pipeline.warnings().iter().cloned().chain(source.warnings()) {
         eprintln!("warning: {warning}");
     }
     if let Some(server) = &server {

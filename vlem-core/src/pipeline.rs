@@ -50,6 +50,8 @@ pub struct Pipeline {
     live: LiveMap,
     config: PipelineConfig,
     stop: StopHandle,
+    /// What the config asked for that this pipeline does not use.
+    warnings: Vec<String>,
 }
 
 /// Ends a run of its pipeline early from another thread (a Ctrl-C handler, a front-end's
@@ -158,8 +160,9 @@ pub struct RunReport {
     pub wall_seconds: f64,
     /// Whether the run ended early because its [`StopHandle`] was used.
     pub stopped: bool,
-    /// What the source warned about (missing frames, a bag's dropped messages, …).
-    pub source_warnings: Vec<String>,
+    /// What the pipeline's config and the source warned about (a section the pipeline does not
+    /// use; missing frames, a bag's dropped messages, …).
+    pub warnings: Vec<String>,
     /// The trajectory, one entry per tracked frame.
     #[serde(skip)]
     pub trajectory: Vec<TrajectoryEntry>,
@@ -242,7 +245,8 @@ pub struct RunStats {
     pub wall_seconds: f64,
     /// Whether the run was stopped early ([`StopHandle`]).
     pub stopped: bool,
-    /// What the source warned about (missing frames, …); empty when nothing.
+    /// What the config and the source warned about (an unused section, missing frames, …);
+    /// empty when nothing.
     pub warnings: Vec<String>,
     /// The map after the run, when there is one.
     pub map: Option<MapStats>,
@@ -285,7 +289,7 @@ impl RunReport {
             stage_load: self.stage_load.clone(),
             wall_seconds: self.wall_seconds,
             stopped: self.stopped,
-            warnings: self.source_warnings.clone(),
+            warnings: self.warnings.clone(),
             map: map.map(MapStats::of),
             peak_resident_bytes,
             peak_device_bytes: None,
@@ -340,10 +344,26 @@ impl Pipeline {
             .as_ref()
             .map(|stage| registry.build_encoder(stage, ctx))
             .transpose()?;
-        // A proposer only runs for encoders that embed regions; `Pipeline::new` reports a missing one.
+        // A proposer only runs for encoders that embed regions; `Pipeline::new` reports a missing
+        // one, and an unused one is a warning (a shared config may name one for other encoders).
+        let mut warnings = Vec::new();
         let proposer = match (&encoder, &config.proposer) {
             (Some(e), Some(stage)) if e.needs_regions() => {
                 Some(registry.build_proposer(stage, ctx)?)
+            }
+            (encoder, Some(stage)) => {
+                warnings.push(format!(
+                    "[proposer] kind = \"{}\" is not used: {}",
+                    stage.kind,
+                    encoder.as_ref().map_or_else(
+                        || "there is no [encoder]".to_owned(),
+                        |e| format!(
+                            "the encoder `{}` embeds the whole frame, not regions",
+                            e.name()
+                        )
+                    )
+                ));
+                None
             }
             _ => None,
         };
@@ -356,7 +376,8 @@ impl Pipeline {
             .as_ref()
             .map(|stage| registry.build_map(stage, &map_ctx))
             .transpose()?;
-        let pipeline = Self::new(tracker, proposer, encoder, map, config.pipeline.clone())?;
+        let mut pipeline = Self::new(tracker, proposer, encoder, map, config.pipeline.clone())?;
+        pipeline.warnings = warnings;
         // What a map file saved from this pipeline needs to rebuild its text encoder.
         pipeline.live.set_metadata(MapMetadata {
             encoder: config.encoder.clone(),
@@ -414,7 +435,15 @@ impl Pipeline {
             live,
             config,
             stop: StopHandle::default(),
+            warnings: Vec::new(),
         })
+    }
+
+    /// What the config asked for that this pipeline does not use (a `[proposer]` beside an
+    /// encoder that embeds whole frames): front-ends print them, and each run's report lists them
+    /// first among its [`RunReport::warnings`].
+    pub fn warnings(&self) -> &[String] {
+        &self.warnings
     }
 
     /// A handle that stops a run of this pipeline from another thread.
@@ -486,7 +515,8 @@ impl Pipeline {
             (true, limit) => limit.unwrap_or(usize::MAX),
             (false, limit) => limit.map_or(source.len(), |n| n.min(source.len())),
         };
-        let source_warnings = source.warnings();
+        let mut warnings = self.warnings.clone();
+        warnings.extend(source.warnings());
         let start = Instant::now();
         let (sender, receiver) = sync_channel::<Work>(self.config.queue_capacity);
         let config = self.config.clone();
@@ -580,7 +610,7 @@ impl Pipeline {
             stages: self.config.stages,
             wall_seconds: start.elapsed().as_secs_f64(),
             stopped: tracking.stopped,
-            source_warnings,
+            warnings,
             trajectory: tracking.trajectory,
         })
     }

@@ -47,7 +47,8 @@ impl ModelDtype {
                 "f16" => Ok(Self::F16),
                 "bf16" => Ok(Self::Bf16),
                 other => Err(BackendError::InvalidParams(format!(
-                    "the environment variable {name} = {other:?} is not a type; expected \"f32\", \"f16\" or \"bf16\""
+                    "the environment variable {name} = {other:?} is not a type; expected \
+                     \"f32\", \"f16\" or \"bf16\""
                 ))),
             },
             _ => Ok(Self::F32),
