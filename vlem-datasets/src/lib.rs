@@ -155,13 +155,9 @@ pub fn dataset_folder(
         (None, None) if !needs_path => (ctx.config_dir.clone(), ""),
         (None, None) => return Err(DatasetError::NoFolder),
     };
-    // Some readers take one file (a bag's storage file) rather than a folder.
-    let taken_file = dir.is_file()
-        && (looks_like_bag(&dir)
-            || registry
-                .dataset_probes()
-                .iter()
-                .any(|(_, p)| (p.probe)(&dir)));
+    // Some readers take one file (a bag's storage file) rather than a folder: one that
+    // detection recognises.
+    let taken_file = dir.is_file() && detect_kind(&dir).is_ok();
     if needs_path && !dir.is_dir() && !taken_file {
         return Err(DatasetError::NoSuchFolder {
             path: dir,
