@@ -20,6 +20,7 @@ use std::time::Instant;
 
 use anyhow::{Context, Result};
 use candle_core::{DType, Device, Tensor};
+use vlem_backends::ModelDtype;
 use vlem_backends::dinov3::{ClipBpe, DinoTxtHeads, Dinov3Backbone, Dinov3Config, Dinov3Encoder};
 use vlem_core::{Encoder, RgbImage};
 
@@ -56,7 +57,7 @@ fn put_norm(t: &mut HashMap<String, Tensor>, name: &str, width: usize) -> Result
 }
 
 /// ViT-L/16 in the hub layout (`facebook/dinov3-vitl16-pretrain-lvd1689m`).
-fn backbone(device: &Device) -> Result<Dinov3Backbone> {
+fn backbone(device: &Device, dtype: ModelDtype) -> Result<Dinov3Backbone> {
     let c = Dinov3Config {
         hidden_size: 1024,
         intermediate_size: 4096,
@@ -110,16 +111,11 @@ fn backbone(device: &Device) -> Result<Dinov3Backbone> {
         put(&mut t, format!("{l}.layer_scale2.lambda1"), &[h], 1e-5, 0.0)?;
     }
     put_norm(&mut t, "norm", h)?;
-    Ok(Dinov3Backbone::from_tensors(&c, t, device, dtype()?)?)
-}
-
-/// The type to time: `VLEM_BENCH_DTYPE` (`f32` unless set).
-fn dtype() -> Result<vlem_backends::ModelDtype> {
-    Ok(vlem_backends::ModelDtype::from_env("VLEM_BENCH_DTYPE")?)
+    Ok(Dinov3Backbone::from_tensors(&c, t, device, dtype)?)
 }
 
 /// The dino.txt heads in the released checkpoint's layout.
-fn heads(vocab: usize, device: &Device) -> Result<DinoTxtHeads> {
+fn heads(vocab: usize, device: &Device, dtype: ModelDtype) -> Result<DinoTxtHeads> {
     let mut t = HashMap::new();
     let (w, hidden) = (1024, 2752);
     for i in 0..2 {
@@ -161,7 +157,7 @@ fn heads(vocab: usize, device: &Device) -> Result<DinoTxtHeads> {
     }
     put_norm(&mut t, &format!("{tb}.ln_final"), d)?;
     put_linear(&mut t, "text_model.head.linear_projection", d, 2048, false)?;
-    Ok(DinoTxtHeads::from_tensors(t, 16, None, device, dtype()?)?)
+    Ok(DinoTxtHeads::from_tensors(t, 16, None, device, dtype)?)
 }
 
 /// A 640 × 480 frame of smooth gradients.
@@ -191,6 +187,8 @@ fn main() -> Result<()> {
         .map_or(Ok(3), |s| s.parse().context("bad frame count"))?;
     let threads = std::env::var("RAYON_NUM_THREADS").unwrap_or_else(|_| "all".to_owned());
     let device = vlem_backends::ComputeDevice::from_env("VLEM_BENCH_DEVICE")?.open()?;
+    // The type to time: `VLEM_BENCH_DTYPE` (`f32` unless set).
+    let dtype = ModelDtype::from_env("VLEM_BENCH_DTYPE")?;
     println!("building random ViT-L/16 + dino.txt weights ...");
     // A merge list whose vocabulary has the released size (49408 = 512 + 48894 + 2) would need
     // the file; the tiny one times the text tower just as well at the same token count.
@@ -199,8 +197,8 @@ fn main() -> Result<()> {
     let image = frame()?;
     for side in sides {
         let encoder = Dinov3Encoder::new(
-            backbone(&device)?,
-            heads(49408, &device)?,
+            backbone(&device, dtype)?,
+            heads(49408, &device, dtype)?,
             tokenizer.clone(),
             side,
             vec!["{}".to_owned()],

@@ -94,7 +94,7 @@ fn main() -> anyhow::Result<()> {
         );
     }
     if let Some(dir) = text_dir {
-        time_query(&dir, &device)?;
+        time_query(&dir, &device, dtype)?;
     }
     if vlem_backends::profile::enabled() {
         // The steps' times over every call above, the warm-up included.
@@ -106,8 +106,11 @@ fn main() -> anyhow::Result<()> {
 
 /// The cost of one new query through the SigLIP SO400M text tower of the folder `dir` (made by
 /// `bench/naradio/make_random.py`): RayFronts' 80 templates, then a single template.
-fn time_query(dir: &std::path::Path, device: &candle_core::Device) -> anyhow::Result<()> {
-    let dtype = vlem_backends::ModelDtype::from_env("VLEM_BENCH_DTYPE")?;
+fn time_query(
+    dir: &std::path::Path,
+    device: &candle_core::Device,
+    dtype: vlem_backends::ModelDtype,
+) -> anyhow::Result<()> {
     let text = SiglipText::load(dir, device, dtype)?;
     let query = "coffee machine";
     for templates in [IMAGENET_TEMPLATES.to_vec(), vec!["a photo of a {}."]] {

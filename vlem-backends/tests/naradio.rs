@@ -64,6 +64,15 @@ fn floats(v: &Value) -> Vec<f32> {
         .collect()
 }
 
+/// The strings of a golden list.
+fn strs(v: &Value) -> Vec<&str> {
+    v.as_array()
+        .unwrap()
+        .iter()
+        .map(|p| p.as_str().unwrap())
+        .collect()
+}
+
 fn flat(t: &Tensor) -> Vec<f32> {
     t.flatten_all().unwrap().to_vec1::<f32>().unwrap()
 }
@@ -177,12 +186,7 @@ fn naradio_matches_rayfronts() {
 fn half_precision_agrees_with_the_f32_goldens() {
     let g = goldens();
     let std = g["gauss_std"].as_f64().unwrap();
-    let labels: Vec<&str> = g["text"]["labels"]
-        .as_array()
-        .unwrap()
-        .iter()
-        .map(|p| p.as_str().unwrap())
-        .collect();
+    let labels = strs(&g["text"]["labels"]);
     for dtype in [ModelDtype::F16, ModelDtype::Bf16] {
         let model = RadioModel::load(&tiny_dir(), &common::device(), dtype).unwrap();
         let dim = model.adaptor_dim().unwrap();
@@ -343,12 +347,7 @@ fn naclip_attention_by_hand() {
 fn text_matches_open_clip() {
     let g = goldens();
     let text = SiglipText::load(&tiny_dir().join("text"), &common::device(), F32).unwrap();
-    let prompts: Vec<&str> = g["text"]["prompts"]
-        .as_array()
-        .unwrap()
-        .iter()
-        .map(|p| p.as_str().unwrap())
-        .collect();
+    let prompts = strs(&g["text"]["prompts"]);
     let ids = text.token_ids(&prompts).unwrap();
     let want: Vec<Vec<u32>> = g["text"]["ids"]
         .as_array()
@@ -385,12 +384,7 @@ fn tiny_encoder() -> NaradioEncoder {
 fn label_embeddings_match_rayfronts() {
     let g = goldens();
     let enc = tiny_encoder();
-    let labels: Vec<&str> = g["text"]["labels"]
-        .as_array()
-        .unwrap()
-        .iter()
-        .map(|p| p.as_str().unwrap())
-        .collect();
+    let labels = strs(&g["text"]["labels"]);
     let got: Vec<f32> = enc.label_embeddings(&labels).unwrap().concat();
     assert_close(
         "label embeddings",

@@ -74,6 +74,13 @@ fn test_image(w: usize, h: usize) -> RgbImage {
     RgbImage::new(w as u32, h as u32, data).unwrap()
 }
 
+/// The goldens' image and its size, `(width, height, image)`.
+fn golden_image(goldens: &Value) -> (usize, usize, RgbImage) {
+    let size = |key: &str| goldens["image"][key].as_u64().unwrap() as usize;
+    let (w, h) = (size("width"), size("height"));
+    (w, h, test_image(w, h))
+}
+
 fn assert_close(what: &str, got: &[f32], want: &[f32], tol: f32) {
     assert_eq!(got.len(), want.len(), "{what}: length");
     let (mut worst, mut at) = (0f32, 0);
@@ -185,11 +192,7 @@ fn check_network(key: &str, encoder: EncoderConfig, state_dict: &str) {
     let unexpected: Vec<&String> = unused.iter().filter(|n| !expected_unused(n)).collect();
     assert!(unexpected.is_empty(), "tensors never read: {unexpected:?}");
 
-    let (w, h) = (
-        goldens["image"]["width"].as_u64().unwrap() as usize,
-        goldens["image"]["height"].as_u64().unwrap() as usize,
-    );
-    let image = test_image(w, h);
+    let (w, h, image) = golden_image(&goldens);
     let pre = model.preprocess(image.as_raw(), w, h).unwrap();
     assert_eq!(
         [pre.input.1, pre.input.0],
@@ -394,11 +397,7 @@ fn tinyvit_network_matches_mobile_sam() {
 #[test]
 fn half_precision_networks_agree_with_f32() {
     let goldens = read_json("sam_goldens.json");
-    let (w, h) = (
-        goldens["image"]["width"].as_u64().unwrap() as usize,
-        goldens["image"]["height"].as_u64().unwrap() as usize,
-    );
-    let image = test_image(w, h);
+    let (w, h, image) = golden_image(&goldens);
     // (batch, 256, 64, 64) -> one row of 256 per grid cell.
     let cells = |t: &Tensor| -> Vec<f32> {
         let t = t
@@ -479,11 +478,7 @@ fn half_precision_networks_agree_with_f32() {
 #[test]
 fn device_filtering_gives_the_host_filterings_masks() {
     let goldens = read_json("sam_goldens.json");
-    let (w, h) = (
-        goldens["image"]["width"].as_u64().unwrap() as usize,
-        goldens["image"]["height"].as_u64().unwrap() as usize,
-    );
-    let image = test_image(w, h);
+    let (_, _, image) = golden_image(&goldens);
     for (key, encoder) in [("vit", tiny_vit()), ("tiny_vit", tiny_tinyvit())] {
         let model = SamModel::new(
             SyntheticWeights::new().var_builder(&common::device()),

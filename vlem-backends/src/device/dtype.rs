@@ -23,6 +23,18 @@ pub enum ModelDtype {
     Bf16,
 }
 
+impl std::str::FromStr for ModelDtype {
+    type Err = BackendError;
+
+    /// The names the `dtype` key takes, read by the key's own deserialiser (one list of names).
+    fn from_str(text: &str) -> Result<Self, Self::Err> {
+        use serde::de::IntoDeserializer;
+        Self::deserialize(text.into_deserializer()).map_err(|e: serde::de::value::Error| {
+            BackendError::InvalidParams(format!("dtype = {text:?}: {e}"))
+        })
+    }
+}
+
 impl std::fmt::Display for ModelDtype {
     /// The name the `dtype` key takes.
     fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
@@ -41,18 +53,7 @@ impl ModelDtype {
     /// # Errors
     /// [`BackendError::InvalidParams`] naming the variable when it holds another word.
     pub fn from_env(name: &str) -> Result<Self, BackendError> {
-        match std::env::var(name) {
-            Ok(text) if !text.trim().is_empty() => match text.trim() {
-                "f32" => Ok(Self::F32),
-                "f16" => Ok(Self::F16),
-                "bf16" => Ok(Self::Bf16),
-                other => Err(BackendError::InvalidParams(format!(
-                    "the environment variable {name} = {other:?} is not a type; expected \
-                     \"f32\", \"f16\" or \"bf16\""
-                ))),
-            },
-            _ => Ok(Self::F32),
-        }
+        super::parse_env(name, Self::F32)
     }
 
     /// The candle type.
@@ -84,5 +85,9 @@ mod tests {
         assert_eq!(parse("bf16").unwrap(), ModelDtype::Bf16);
         let err = parse("fp16").unwrap_err().to_string();
         assert!(err.contains("f32") && err.contains("bf16"), "{err}");
+        // The environment's switch reads the same names.
+        assert_eq!("bf16".parse::<ModelDtype>().unwrap(), ModelDtype::Bf16);
+        let err = "fp16".parse::<ModelDtype>().unwrap_err().to_string();
+        assert!(err.contains("fp16") && err.contains("f16"), "{err}");
     }
 }

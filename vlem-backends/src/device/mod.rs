@@ -98,12 +98,18 @@ impl ComputeDevice {
     /// # Errors
     /// [`BackendError::InvalidParams`] for a value that is not a device.
     pub fn from_env(name: &str) -> Result<Self, BackendError> {
-        match std::env::var(name) {
-            Ok(text) if !text.trim().is_empty() => text.parse().map_err(|e: BackendError| {
-                BackendError::InvalidParams(format!("the environment variable {name}: {e}"))
-            }),
-            _ => Ok(Self::Cpu),
-        }
+        parse_env(name, Self::Cpu)
+    }
+}
+
+/// The value of the environment variable `name`, parsed; `default` when it is unset or empty:
+/// the benchmarks' and tests' switches of device and type.
+fn parse_env<T: FromStr<Err = BackendError>>(name: &str, default: T) -> Result<T, BackendError> {
+    match std::env::var(name) {
+        Ok(text) if !text.trim().is_empty() => text.trim().parse().map_err(|e: BackendError| {
+            BackendError::InvalidParams(format!("the environment variable {name}: {e}"))
+        }),
+        _ => Ok(default),
     }
 }
 
