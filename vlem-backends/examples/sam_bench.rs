@@ -8,7 +8,7 @@
 //!
 //! ```text
 //! RAYON_NUM_THREADS=2 cargo run --release -p vlem-backends --features sam --example sam_bench -- \
-//!     --variant mobile-sam --points-per-side 32,16 --refine on,off
+//!     --variant mobile-sam --points-per-side 32,16 --refine on,off --points-per-batch 32,256
 //! ```
 //! `VLEM_BENCH_DEVICE=cuda` runs the network on a GPU (build with feature `cuda`),
 //! `VLEM_BENCH_DTYPE=f16` or `bf16` in half precision.
@@ -62,6 +62,7 @@ fn main() -> Result<()> {
     let mut variant = SamVariant::MobileSam;
     let mut sides = vec![32usize, 16];
     let mut refines = vec![true, false];
+    let mut batches = vec![GeneratorParams::default().points_per_batch];
     let mut weights: Option<String> = None;
     let mut args = std::env::args().skip(1);
     while let Some(a) = args.next() {
@@ -78,6 +79,7 @@ fn main() -> Result<()> {
             "--refine" => {
                 refines = value()?.split(',').map(|v| v.trim() == "on").collect();
             }
+            "--points-per-batch" => batches = parse_list(&value()?)?,
             "--weights" => weights = Some(value()?),
             _ => bail!("unknown argument {a}"),
         }
@@ -128,16 +130,21 @@ fn main() -> Result<()> {
     );
 
     let mut proposer = Some(SamProposer::new(model, GeneratorParams::default()));
-    println!("| variant | points_per_side | refine | ms / frame | masks |");
-    println!("|---|---|---|---|---|");
+    // The last column is last so that bench/sam/side_by_side.sh reads the rows either way.
+    println!("| variant | points_per_side | refine | ms / frame | masks | points_per_batch |");
+    println!("|---|---|---|---|---|---|");
     for &side in &sides {
-        for &refine in &refines {
+        for (&refine, &batch) in refines
+            .iter()
+            .flat_map(|r| batches.iter().map(move |b| (r, b)))
+        {
             let Some(p) = proposer.take() else {
                 bail!("proposer lost")
             };
             let (model, _) = p.into_parts();
             let params = GeneratorParams {
                 points_per_side: side,
+                points_per_batch: batch,
                 refine,
                 ..GeneratorParams::default()
             };
@@ -146,7 +153,7 @@ fn main() -> Result<()> {
             let masks = p.generate(&image)?;
             let ms = t.elapsed().as_secs_f64() * 1e3;
             println!(
-                "| {variant:?} | {side} | {} | {ms:.0} | {} |",
+                "| {variant:?} | {side} | {} | {ms:.0} | {} | {batch} |",
                 if refine { "on" } else { "off" },
                 masks.len()
             );

@@ -20,8 +20,9 @@
 //!    masks thresholded at ±`stability_score_offset`) reaches `stability_score_thresh`; box NMS at
 //!    `box_nms_thresh` by predicted IoU; with `min_mask_region_area > 0`, holes and islands
 //!    smaller than that are removed (8-connected components) and NMS runs again preferring
-//!    unchanged masks. On a GPU the upsampling and the two thresholds run there
-//!    ([`MaskFiltering`], `device_masks`), so only the masks that pass cross to the host.
+//!    unchanged masks. On a GPU the upsampling, the two thresholds and the masks' boxes run there
+//!    ([`MaskFiltering`], `device_masks`); the masks wait there through NMS, which needs only
+//!    their boxes and scores, and only those it keeps cross to the host, in one copy per pass.
 //! 3. Refinement (`refine = true`): `refine_points` pixels drawn uniformly (seeded by `seed`)
 //!    among those no mask covers are each decoded as a single foreground point and filtered the
 //!    same way (IoU, stability, NMS, small regions); a fill-in mask whose box overlaps a kept
@@ -388,6 +389,14 @@ fn crop_to_box(frame: &[bool], width: usize) -> Option<Cropped> {
     Some((bbox, mask))
 }
 
+/// A [`Candidate::held`] its source does not hold (a bug, reported rather than panicking).
+fn unheld(held: usize) -> BackendError {
+    BackendError::Inference {
+        what: "collecting the kept masks".to_owned(),
+        source: format!("no held mask {held}").into(),
+    }
+}
+
 fn inference(what: &str) -> impl FnOnce(candle_core::Error) -> BackendError + '_ {
     move |e| BackendError::Inference {
         what: what.to_owned(),
@@ -526,16 +535,9 @@ impl SamProposer {
             }
             MaskFiltering::Device => {
                 let frame = Frame::new((w, h), pre.input);
-                let device = device_masks::DeviceMasks::new(&self.model, &embeddings, &frame)
+                let mut device = device_masks::DeviceMasks::new(&self.model, &embeddings, &frame)
                     .map_err(inference("the mask filters' upsampling matrices"))?;
-                let mut candidates = |p: &GeneratorParams,
-                                      frame: &Frame,
-                                      points: &[[f64; 2]],
-                                      input_points: &[[f32; 2]],
-                                      pass: Pass| {
-                    device.candidates(p, frame, points, input_points, pass)
-                };
-                generate_with(&self.params, &frame, &mut candidates)
+                generate_with(&self.params, &frame, &mut device)
             }
         }
     }
@@ -574,16 +576,18 @@ impl SamProposer {
 pub type DecodeFn<'a> = dyn FnMut(&[[f32; 2]]) -> Result<(Vec<f32>, Vec<f32>), BackendError> + 'a;
 
 /// Where the generator's first filters run: each prompt's three masks are upsampled to the image
-/// and held to the predicted-IoU and stability thresholds. Box NMS and small-region removal run
-/// on the host either way, over the masks that passed.
+/// and held to the predicted-IoU and stability thresholds, and the survivors' boxes found. Box
+/// NMS runs on the host either way, over boxes and scores only; small-region removal (off by
+/// default) on the host, over the masks NMS kept, as in the reference (OpenCV on the CPU).
 #[derive(Clone, Copy, Debug, PartialEq, Eq)]
 pub enum MaskFiltering {
     /// Every mask's low-resolution logits cross to the host, and those that pass the predicted
     /// IoU are upsampled there by their few taps per pixel: the CPU's fastest path.
     Host,
     /// On the model's device: only the predicted IoUs cross first; the masks that pass are
-    /// upsampled there (two matrix products), their stability counted there, and only the
-    /// survivors cross, as one byte per pixel: a GPU's path (tested on the CPU).
+    /// upsampled there (two matrix products), their stability counted and their boxes found
+    /// there, and they stay there through NMS: only the masks NMS keeps cross, in one copy per
+    /// pass, as one byte per pixel. A GPU's path (tested on the CPU).
     Device,
 }
 
@@ -598,16 +602,40 @@ impl MaskFiltering {
     }
 }
 
-/// The candidates of one batch of prompts (`points` in image pixels, `input_points` the same in
-/// input pixels): each mask whose predicted IoU and stability pass, cropped to its box.
-type CandidatesFn<'a> = dyn FnMut(
-        &GeneratorParams,
-        &Frame,
-        &[[f64; 2]],
-        &[[f32; 2]],
-        Pass,
-    ) -> Result<Vec<GeneratedMask>, BackendError>
-    + 'a;
+/// A mask that passed the first filters, its pixels held by the [`CandidateSource`] that made it
+/// until NMS has decided.
+struct Candidate {
+    bbox: MaskBox,
+    predicted_iou: f32,
+    stability_score: f32,
+    point: [f64; 2],
+    pass: Pass,
+    /// Which of its source's held masks is this one's.
+    held: usize,
+}
+
+/// Where the generator's candidates come from and where their masks wait: the host
+/// ([`HostCandidates`]) or the model's device (`device_masks`).
+trait CandidateSource {
+    /// The candidates of one batch of prompts (`points` in image pixels, `input_points` the same
+    /// in input pixels): each non-empty mask whose predicted IoU and stability pass.
+    fn batch(
+        &mut self,
+        p: &GeneratorParams,
+        frame: &Frame,
+        points: &[[f64; 2]],
+        input_points: &[[f32; 2]],
+        pass: Pass,
+    ) -> Result<Vec<Candidate>, BackendError>;
+
+    /// The masks of `kept`, in that order, each cropped to its box; every held mask is
+    /// forgotten, kept or not.
+    fn take_masks(
+        &mut self,
+        frame: &Frame,
+        kept: &[&Candidate],
+    ) -> Result<Vec<Vec<bool>>, BackendError>;
+}
 
 /// The automatic mask generator and the refinement (steps 2-3 of the
 /// [module documentation](self)) over any decoder: an image of `(width, height)` that was resized
@@ -625,20 +653,18 @@ pub fn generate_masks(
         return Ok(Vec::new());
     }
     let frame = Frame::new((w, h), input);
-    let mut candidates =
-        |p: &GeneratorParams,
-         frame: &Frame,
-         points: &[[f64; 2]],
-         input_points: &[[f32; 2]],
-         pass: Pass| { host_candidates(p, frame, points, input_points, pass, decode) };
-    generate_with(params, &frame, &mut candidates)
+    let mut host = HostCandidates {
+        decode,
+        held: Vec::new(),
+    };
+    generate_with(params, &frame, &mut host)
 }
 
 /// [`generate_masks`] over any source of candidates.
 fn generate_with(
     params: &GeneratorParams,
     frame: &Frame,
-    candidates: &mut CandidatesFn<'_>,
+    candidates: &mut dyn CandidateSource,
 ) -> Result<Vec<GeneratedMask>, BackendError> {
     let (w, h) = (frame.width, frame.height);
     let grid: Vec<[f64; 2]> = amg::point_grid(params.points_per_side)
@@ -675,27 +701,40 @@ fn generate_with(
 }
 
 /// Decodes `points` (image pixels) in batches and filters the masks: predicted IoU and stability
-/// (by `source`), then NMS and small regions.
+/// (by `source`), then NMS over the candidates' boxes, then the kept masks from `source`, then
+/// small regions.
 fn masks_for_points(
     p: &GeneratorParams,
     frame: &Frame,
     points: &[[f64; 2]],
     pass: Pass,
-    source: &mut CandidatesFn<'_>,
+    source: &mut dyn CandidateSource,
 ) -> Result<Vec<GeneratedMask>, BackendError> {
-    let mut candidates: Vec<GeneratedMask> = Vec::new();
+    let mut candidates: Vec<Candidate> = Vec::new();
     for chunk in points.chunks(p.points_per_batch.max(1)) {
         let input_points: Vec<[f32; 2]> = chunk
             .iter()
             .map(|[x, y]| [(x * frame.scale[0]) as f32, (y * frame.scale[1]) as f32])
             .collect();
-        candidates.extend(source(p, frame, chunk, &input_points, pass)?);
+        candidates.extend(source.batch(p, frame, chunk, &input_points, pass)?);
     }
     let boxes: Vec<MaskBox> = candidates.iter().map(|c| c.bbox).collect();
     let scores: Vec<f32> = candidates.iter().map(|c| c.predicted_iou).collect();
     let keep = amg::nms(&boxes, &scores, p.box_nms_thresh);
-    let mut slots: Vec<Option<GeneratedMask>> = candidates.into_iter().map(Some).collect();
-    let kept: Vec<GeneratedMask> = keep.iter().filter_map(|&i| slots[i].take()).collect();
+    let kept: Vec<&Candidate> = keep.iter().filter_map(|&i| candidates.get(i)).collect();
+    let masks = source.take_masks(frame, &kept)?;
+    let kept: Vec<GeneratedMask> = kept
+        .into_iter()
+        .zip(masks)
+        .map(|(c, mask)| GeneratedMask {
+            bbox: c.bbox,
+            mask,
+            predicted_iou: c.predicted_iou,
+            stability_score: c.stability_score,
+            point: c.point,
+            pass: c.pass,
+        })
+        .collect();
     if p.min_mask_region_area == 0 || kept.is_empty() {
         return Ok(kept);
     }
@@ -717,72 +756,87 @@ fn passes_stability(p: &GeneratorParams, stability: f32) -> bool {
         )
 }
 
-/// A candidate from a full-frame binary mask, `None` when it is empty.
-fn candidate(
-    binary: &[bool],
-    frame: &Frame,
-    (predicted_iou, stability_score): (f32, f32),
-    point: [f64; 2],
-    pass: Pass,
-) -> Option<GeneratedMask> {
-    let (bbox, mask) = crop_to_box(binary, frame.width)?;
-    Some(GeneratedMask {
-        bbox,
-        mask,
-        predicted_iou,
-        stability_score,
-        point,
-        pass,
-    })
+/// Candidates from a host decoder ([`MaskFiltering::Host`]): every mask's logits on the host,
+/// upsampled there when its predicted IoU passes; the masks are held cropped to their boxes.
+struct HostCandidates<'d, 'a> {
+    decode: &'d mut DecodeFn<'a>,
+    /// The cropped masks of this pass's candidates, by [`Candidate::held`].
+    held: Vec<Option<Vec<bool>>>,
 }
 
-/// The candidates of one batch from a host decoder: every mask's logits on the host, upsampled
-/// there when its predicted IoU passes ([`MaskFiltering::Host`]).
-fn host_candidates(
-    p: &GeneratorParams,
-    frame: &Frame,
-    points: &[[f64; 2]],
-    input_points: &[[f32; 2]],
-    pass: Pass,
-    decode: &mut DecodeFn<'_>,
-) -> Result<Vec<GeneratedMask>, BackendError> {
-    let plane = image::LOW_RES * image::LOW_RES;
-    let (masks, ious) = decode(input_points)?;
-    if masks.len() < points.len() * 3 * plane || ious.len() < points.len() * 3 {
-        return Err(BackendError::Inference {
-            what: "running the mask decoder".to_owned(),
-            source: format!(
-                "{} logits and {} IoUs for {} prompts",
-                masks.len(),
-                ious.len(),
-                points.len()
-            )
-            .into(),
-        });
+impl CandidateSource for HostCandidates<'_, '_> {
+    fn batch(
+        &mut self,
+        p: &GeneratorParams,
+        frame: &Frame,
+        points: &[[f64; 2]],
+        input_points: &[[f32; 2]],
+        pass: Pass,
+    ) -> Result<Vec<Candidate>, BackendError> {
+        let plane = image::LOW_RES * image::LOW_RES;
+        let (masks, ious) = (self.decode)(input_points)?;
+        if masks.len() < points.len() * 3 * plane || ious.len() < points.len() * 3 {
+            return Err(BackendError::Inference {
+                what: "running the mask decoder".to_owned(),
+                source: format!(
+                    "{} logits and {} IoUs for {} prompts",
+                    masks.len(),
+                    ious.len(),
+                    points.len()
+                )
+                .into(),
+            });
+        }
+        let held = &mut self.held;
+        let filter = || {
+            let mut out = Vec::new();
+            for (j, (logits, &iou)) in masks.chunks_exact(plane).zip(&ious).enumerate() {
+                if !passes_predicted_iou(p, iou) {
+                    continue;
+                }
+                let up = image::upsample_logits(logits, &frame.xs, &frame.ys);
+                let stability = amg::stability_score(&up, 0.0, p.stability_score_offset);
+                if !passes_stability(p, stability) {
+                    continue;
+                }
+                let binary: Vec<bool> = up.iter().map(|&l| l > 0.0).collect();
+                let Some((bbox, mask)) = crop_to_box(&binary, frame.width) else {
+                    continue;
+                };
+                out.push(Candidate {
+                    bbox,
+                    predicted_iou: iou,
+                    stability_score: stability,
+                    point: points.get(j / 3).copied().unwrap_or([0.0, 0.0]),
+                    pass,
+                    held: held.len(),
+                });
+                held.push(Some(mask));
+            }
+            Ok(out)
+        };
+        crate::profile::timed("sam: mask filtering", &candle_core::Device::Cpu, filter).map_err(
+            |e| BackendError::Inference {
+                what: "filtering the masks".to_owned(),
+                source: Box::new(e),
+            },
+        )
     }
-    let filter = || {
-        let mut out = Vec::new();
-        for (j, (logits, &iou)) in masks.chunks_exact(plane).zip(&ious).enumerate() {
-            if !passes_predicted_iou(p, iou) {
-                continue;
-            }
-            let up = image::upsample_logits(logits, &frame.xs, &frame.ys);
-            let stability = amg::stability_score(&up, 0.0, p.stability_score_offset);
-            if !passes_stability(p, stability) {
-                continue;
-            }
-            let binary: Vec<bool> = up.iter().map(|&l| l > 0.0).collect();
-            let point = points.get(j / 3).copied().unwrap_or([0.0, 0.0]);
-            out.extend(candidate(&binary, frame, (iou, stability), point, pass));
-        }
-        Ok(out)
-    };
-    crate::profile::timed("sam: mask filtering", &candle_core::Device::Cpu, filter).map_err(|e| {
-        BackendError::Inference {
-            what: "filtering the masks".to_owned(),
-            source: Box::new(e),
-        }
-    })
+
+    fn take_masks(
+        &mut self,
+        _frame: &Frame,
+        kept: &[&Candidate],
+    ) -> Result<Vec<Vec<bool>>, BackendError> {
+        let mut held = std::mem::take(&mut self.held);
+        kept.iter()
+            .map(|c| {
+                held.get_mut(c.held)
+                    .and_then(Option::take)
+                    .ok_or_else(|| unheld(c.held))
+            })
+            .collect()
+    }
 }
 
 /// The reference's `postprocess_small_regions`: fills small holes, drops small islands, then
