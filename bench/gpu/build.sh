@@ -40,8 +40,8 @@ cargo build --release --features "$models"
 # candle's kernels are compiled once for both.
 tests=$(cargo build --release -p vlem-backends --features "$models" \
     --example clip_bench --example dinov3_bench --example naradio_bench --example sam_bench \
-    --example minilm_bench --test clip --test dinov3 --test naradio --test sam --test label_text \
-    --test tf32 \
+    --example minilm_bench --example attention_bench --test clip --test dinov3 --test naradio \
+    --test sam --test label_text --test tf32 --test fused_attention \
     --message-format=json |
     python3 -c 'import json, sys
 for line in sys.stdin:
@@ -63,7 +63,7 @@ stage=target/gpu-check-stage
 rm -rf "$out" "$stage"
 mkdir -p "$stage/bin/tests" "$stage/bin/examples" "$stage/py" "$out/data"
 cp "$CARGO_TARGET_DIR/release/vlem" "$stage/bin/"
-for e in clip_bench dinov3_bench naradio_bench sam_bench minilm_bench; do
+for e in clip_bench dinov3_bench naradio_bench sam_bench minilm_bench attention_bench; do
     cp "$CARGO_TARGET_DIR/release/examples/$e" "$stage/bin/examples/"
 done
 while read -r name path; do

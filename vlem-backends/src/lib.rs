@@ -143,6 +143,15 @@ pub mod profile;
 )]
 pub(crate) mod attention;
 
+// Fused attention: one CUDA kernel for half-precision attention, its plain twin on the CPU.
+#[cfg(any(
+    feature = "clip",
+    feature = "dinov3",
+    feature = "naradio",
+    feature = "sam"
+))]
+pub mod fused_attention;
+
 // The ViT building blocks shared by the candle patch encoders.
 #[cfg(any(feature = "dinov3", feature = "naradio"))]
 #[cfg_attr(
