@@ -33,7 +33,7 @@ pub const HEAD_DIMS: [usize; 2] = [32, 64];
 /// The most (batch × heads) rows one call takes.
 pub const MAX_ROWS: usize = 65_535;
 
-/// The environment switch that turns the fused kernel on for the models on a GPU.
+/// The environment switch that turns the fused attention on for the models (see [`enabled`]).
 pub const ENABLE_ENV: &str = "VLEM_FUSED_ATTENTION";
 
 /// The switch: 0 not read yet, 1 off, 2 on.
