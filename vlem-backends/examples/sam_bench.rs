@@ -13,12 +13,16 @@
 //! `VLEM_BENCH_DEVICE=cuda` runs the network on a GPU (build with feature `cuda`),
 //! `VLEM_BENCH_DTYPE=f16` or `bf16` in half precision.
 //! `VLEM_PROFILE=1` adds a per-op profile (`vlem_backends::profile`) at the end.
+//!
+//! `--write-weights PATH` writes the variant's synthetic weights to a safetensors file with the
+//! official checkpoint's tensor names, as `[proposer] weights` reads them, and stops: a SAM for
+//! end-to-end runs where no checkpoint can be had (`bench/gpu/check.sh` part 4).
 
 use std::time::Instant;
 
 use anyhow::{Context, Result, bail};
 use vlem_backends::sam::model::SamModel;
-use vlem_backends::sam::synthetic::SyntheticWeights;
+use vlem_backends::sam::synthetic::{SyntheticWeights, synthetic_values};
 use vlem_backends::sam::{GeneratorParams, SamProposer, SamVariant};
 use vlem_core::RgbImage;
 
@@ -56,6 +60,28 @@ fn frame() -> Result<RgbImage> {
     Ok(RgbImage::new(w, h, data)?)
 }
 
+/// Builds `variant` on synthetic weights, then writes every tensor it asked for (f32, the names
+/// it asked by) to `path`.
+fn write_synthetic_weights(variant: SamVariant, path: &str) -> Result<()> {
+    let cpu = candle_core::Device::Cpu;
+    let synthetic = SyntheticWeights::new();
+    SamModel::new(synthetic.var_builder(&cpu), &variant.encoder())?;
+    let tensors = synthetic
+        .requested()
+        .into_iter()
+        .map(|(name, dims)| {
+            let t = candle_core::Tensor::from_vec(synthetic_values(&name, &dims), dims, &cpu)?;
+            Ok((name, t))
+        })
+        .collect::<Result<std::collections::HashMap<_, _>>>()?;
+    candle_core::safetensors::save(&tensors, path)?;
+    println!(
+        "{variant:?}: {} synthetic tensors written to {path}",
+        tensors.len()
+    );
+    Ok(())
+}
+
 fn main() -> Result<()> {
     // As the `vlem` binary runs the models.
     vlem_backends::keep_freed_memory();
@@ -64,6 +90,7 @@ fn main() -> Result<()> {
     let mut refines = vec![true, false];
     let mut batches = vec![GeneratorParams::default().points_per_batch];
     let mut weights: Option<String> = None;
+    let mut write_weights: Option<String> = None;
     let mut args = std::env::args().skip(1);
     while let Some(a) = args.next() {
         let mut value = || args.next().context(format!("{a} needs a value"));
@@ -81,10 +108,14 @@ fn main() -> Result<()> {
             }
             "--points-per-batch" => batches = parse_list(&value()?)?,
             "--weights" => weights = Some(value()?),
+            "--write-weights" => write_weights = Some(value()?),
             _ => bail!("unknown argument {a}"),
         }
     }
 
+    if let Some(path) = write_weights {
+        return write_synthetic_weights(variant, &path);
+    }
     let threads = std::env::var("RAYON_NUM_THREADS").unwrap_or_else(|_| "all".to_owned());
     let device = vlem_backends::ComputeDevice::from_env("VLEM_BENCH_DEVICE")?.open()?;
     let dtype = vlem_backends::ModelDtype::from_env("VLEM_BENCH_DTYPE")?.candle();
