@@ -90,6 +90,33 @@ skip() {
 }
 elapsed() { echo "$((SECONDS - start)) s so far"; }
 
+# One step of the check: `step NAME WANT LOG COMMAND...` runs COMMAND for at most WANT seconds (cut
+# to the budget), its output in LOG, and sets STEP_RC and STEP_S (its exit status and seconds).
+# Returns 0 when it passed, 1 when it failed (the caller says so, usually with `fail`), 2 when
+# the budget had no room for it (skipped, said here).
+step() {
+    local name=$1 want=$2 log=$3 limit t0
+    shift 3
+    limit=$(limit "$want") || { skip "$name"; return 2; }
+    t0=$SECONDS
+    timeout "$limit" "$@" >"$log" 2>&1
+    STEP_RC=$?
+    STEP_S=$((SECONDS - t0))
+    [ "$STEP_RC" = 0 ] || return 1
+}
+# A failed step in the summary: `fail NAME LOG [PATTERN]`, with its exit status (124: out of time),
+# its time and LOG's first three lines matching PATTERN (else LOG's last three); counted.
+fail() {
+    local lines
+    if [ -n "${3:-}" ]; then
+        lines=$(grep -E "$3" "$2" | head -n 3)
+    else
+        lines=$(tail -n 3 "$2")
+    fi
+    say "   $1: FAILED, exit $STEP_RC ($STEP_S s): $(echo "$lines" | tr '\n' ' ')"
+    failed=$((failed + 1))
+}
+
 # The summary and the logs to the hand-back folder: two files (the device tool hands back eight).
 hand_back() {
     [ -n "$HAND_BACK" ] || return 0
@@ -155,7 +182,7 @@ export PYTHONPATH="$G/py${PYTHONPATH:+:$PYTHONPATH}"
 
 part_1() {
     say "== 1. golden tests on the GPU (VLEM_TEST_DEVICE=cuda) ($(elapsed))"
-    local t bin t0 limit rc
+    local t bin log
     for t in clip dinov3 naradio sam label_text tf32 fused_attention maps_device_table; do
         bin=$G/bin/tests/$t
         [ -x "$bin" ] || { say "   $t: no test binary"; failed=$((failed + 1)); continue; }
@@ -164,16 +191,12 @@ part_1() {
             say "   $t: skipped (the all-MiniLM-L6-v2 model is not installed here)"
             continue
         fi
-        limit=$(limit 150) || { skip "$t"; continue; }
-        t0=$SECONDS
-        VLEM_TEST_DEVICE=cuda timeout "$limit" "$bin" --test-threads 1 >"$OUT/test-$t.log" 2>&1
-        rc=$?
-        if [ "$rc" = 0 ]; then
-            say "   $t: $(grep -E '^test result' "$OUT/test-$t.log" | tail -n 1) ($((SECONDS - t0)) s)"
-        else
-            say "   $t: FAILED, exit $rc ($((SECONDS - t0)) s): $(grep -E '^test .* FAILED|panicked' "$OUT/test-$t.log" | head -n 3 | tr '\n' ' ')"
-            failed=$((failed + 1))
-        fi
+        log=$OUT/test-$t.log
+        step "$t" 150 "$log" env VLEM_TEST_DEVICE=cuda "$bin" --test-threads 1
+        case $? in
+        0) say "   $t: $(grep -E '^test result' "$log" | tail -n 1) ($STEP_S s)" ;;
+        1) fail "$t" "$log" '^test .* FAILED|panicked' ;;
+        esac
     done
     # The fused kernel has no twin on the GPU to hide behind: its memory accesses and its shared
     # memory barriers (four warps share the K and V tiles; each warp's scores and probabilities
@@ -187,29 +210,46 @@ part_1() {
         return
     fi
     for tool in memcheck racecheck; do
-        limit=$(limit 120) || { skip "fused_attention under $tool"; continue; }
-        t0=$SECONDS
-        VLEM_TEST_DEVICE=cuda timeout "$limit" "$sanitizer" --tool "$tool" --error-exitcode 99 \
-            --kernel-name kns=fused_attention \
+        log=$OUT/sanitizer-$tool.log
+        step "fused_attention under $tool" 120 "$log" env VLEM_TEST_DEVICE=cuda "$sanitizer" \
+            --tool "$tool" --error-exitcode 99 --kernel-name kns=fused_attention \
             "$G/bin/tests/fused_attention" --test-threads 1 --exact \
-            fused_attention_matches_f32_attention_in_both_half_types \
-            >"$OUT/sanitizer-$tool.log" 2>&1
-        rc=$?
-        if [ "$rc" != 0 ] && grep -q "Device not supported" "$OUT/sanitizer-$tool.log"; then
-            say "   compute-sanitizer: refuses this device (Device not supported)"
-            return
-        elif [ "$rc" = 0 ]; then
-            say "   fused_attention under $tool: $(grep -E 'ERROR SUMMARY|RACECHECK SUMMARY' "$OUT/sanitizer-$tool.log" | tail -n 1) ($((SECONDS - t0)) s)"
-        else
-            say "   fused_attention under $tool: FAILED, exit $rc ($((SECONDS - t0)) s): $(grep -E 'ERROR SUMMARY|RACECHECK SUMMARY|Invalid|hazard|panicked' "$OUT/sanitizer-$tool.log" | head -n 3 | tr '\n' ' ')"
-            failed=$((failed + 1))
-        fi
+            fused_attention_matches_f32_attention_in_both_half_types
+        case $? in
+        0) say "   fused_attention under $tool: $(grep -E 'ERROR SUMMARY|RACECHECK SUMMARY' "$log" | tail -n 1) ($STEP_S s)" ;;
+        1)
+            if grep -q "Device not supported" "$log"; then
+                say "   compute-sanitizer: refuses this device (Device not supported)"
+                return
+            fi
+            fail "fused_attention under $tool" "$log" 'ERROR SUMMARY|RACECHECK SUMMARY|Invalid|hazard|panicked'
+            ;;
+        esac
     done
+}
+
+# bench/models/side_by_side.py on the GPU for model ROW in DTYPE, its output in LOG, its JSON line
+# appended to JSONL and said; the extra environment after the four arguments.
+side_by_side() {
+    local row=$1 dtype=$2 log=$3 jsonl=$4 line name
+    shift 4
+    name="$row $dtype${*:+ ($*)}"
+    step "$name" 150 "$log" env PYTHON=python3 "$@" python3 -W ignore \
+        bench/models/side_by_side.py --device cuda --dtype "$dtype" --examples "$G/bin/examples" \
+        --threads 16 --repeat 5 "$row"
+    case $? in
+    0)
+        line=$(grep '^{' "$log" | tail -n 1)
+        echo "$line" >>"$jsonl"
+        say "   ${*:+$*: }$line"
+        ;;
+    1) fail "$name" "$log" ;;
+    esac
 }
 
 part_2() {
     say "== 2. each model per 640x480 frame, vlem and PyTorch on the same GPU ($(elapsed))"
-    local models=(clip-1 clip-32 clip-text-1 clip-text-80) dtype m limit rc v log
+    local models=(clip-1 clip-32 clip-text-1 clip-text-80) dtype m v log
     # The rows whose reference imports here; the others are skipped, saying why.
     rows_if_importable() {
         local rows=$1 modules=$2 why more
@@ -229,73 +269,49 @@ part_2() {
     for dtype in ${VLEM_GPU_CHECK_DTYPES:-f32 f16}; do
         for m in "${models[@]}"; do
             [ "$dtype" != f32 ] && [[ $m == minilm-* ]] && continue
-            limit=$(limit 150) || { skip "$m $dtype"; continue; }
-            PYTHON=python3 timeout "$limit" python3 -W ignore bench/models/side_by_side.py \
-                --device cuda --dtype "$dtype" --examples "$G/bin/examples" --threads 16 \
-                --repeat 5 "$m" >>"$OUT/models.jsonl" 2>"$OUT/models-$m-$dtype.err"
-            rc=$?
-            if [ "$rc" = 0 ]; then
-                say "   $(tail -n 1 "$OUT/models.jsonl")"
-            else
-                say "   $m $dtype: FAILED, exit $rc: $(tail -n 3 "$OUT/models-$m-$dtype.err" | tr '\n' ' ')"
-                failed=$((failed + 1))
-            fi
+            side_by_side "$m" "$dtype" "$OUT/models-$m-$dtype.log" "$OUT/models.jsonl"
         done
     done
     # The attention step alone (issue 38 part 1: the fused kernel against cuBLAS + softmax, and
     # both against PyTorch's SDPA), then the models it speeds up, whole, with it turned on.
-    if limit=$(limit 240); then
-        if VLEM_BENCH_DEVICE=cuda timeout "$((limit / 2))" "$G/bin/examples/attention_bench" 20 \
-            >"$OUT/attention.jsonl" 2>"$OUT/attention.err" &&
-            timeout "$((limit / 2))" python3 -W ignore bench/attention/sdpa_bench.py --device cuda \
-                >>"$OUT/attention.jsonl" 2>>"$OUT/attention.err"; then
-            say "   attention alone, ms per call (unfused / fused), vlem then PyTorch:"
-            python3 - "$OUT/attention.jsonl" <<'PY' | tee -a "$SUMMARY"
+    : >"$OUT/attention.jsonl"
+    step "attention alone, vlem" 120 "$OUT/attention-vlem.log" env VLEM_BENCH_DEVICE=cuda \
+        "$G/bin/examples/attention_bench" 20
+    case $? in 1) fail "attention alone, vlem" "$OUT/attention-vlem.log" ;; esac
+    step "attention alone, PyTorch" 120 "$OUT/attention-torch.log" python3 -W ignore \
+        bench/attention/sdpa_bench.py --device cuda
+    case $? in 1) fail "attention alone, PyTorch" "$OUT/attention-torch.log" ;; esac
+    grep -h '^{' "$OUT/attention-vlem.log" "$OUT/attention-torch.log" >"$OUT/attention.jsonl" 2>/dev/null
+    if [ -s "$OUT/attention.jsonl" ]; then
+        say "   attention alone, ms per call (unfused / fused), vlem then PyTorch:"
+        python3 - "$OUT/attention.jsonl" <<'PY' | tee -a "$SUMMARY"
 import json, sys
 for line in open(sys.argv[1]):
     r = json.loads(line)
     print(f"     {r['impl'][:12]:12} {r['shape']:20} {r['dtype']:4} {r['unfused_ms']} / {r['fused_ms']}")
 PY
-        else
-            say "   attention alone: FAILED: $(tail -n 3 "$OUT/attention.err" | tr '\n' ' ')"
-            failed=$((failed + 1))
-        fi
-    else
-        skip "attention alone"
     fi
     : >"$OUT/models-fused.jsonl"
     for m in clip-32 dinov3 naradio-b naradio-l; do
         [[ " ${models[*]} " == *" $m "* ]] || continue
-        limit=$(limit 150) || { skip "$m f16, fused attention"; continue; }
-        VLEM_FUSED_ATTENTION=1 PYTHON=python3 timeout "$limit" python3 -W ignore \
-            bench/models/side_by_side.py --device cuda --dtype f16 --examples "$G/bin/examples" \
-            --threads 16 --repeat 5 "$m" >>"$OUT/models-fused.jsonl" \
-            2>"$OUT/models-$m-fused.err"
-        rc=$?
-        if [ "$rc" = 0 ]; then
-            say "   fused attention: $(tail -n 1 "$OUT/models-fused.jsonl")"
-        else
-            say "   $m f16, fused attention: FAILED, exit $rc: $(tail -n 3 "$OUT/models-$m-fused.err" | tr '\n' ' ')"
-            failed=$((failed + 1))
-        fi
+        side_by_side "$m" f16 "$OUT/models-$m-fused.log" "$OUT/models-fused.jsonl" \
+            VLEM_FUSED_ATTENTION=1
     done
     # SAM's decoder batch (issue 38 part 3: as few batches as fit): vlem alone at 32, 64 and 256
     # prompts a batch (16² = 256: the whole grid in one), to choose the CUDA config's value.
     for dtype in ${VLEM_GPU_CHECK_DTYPES:-f32 f16}; do
         for v in mobile-sam vit-b; do
             log=$OUT/sam-batches-$v-$dtype.log
-            limit=$(limit 120) || { skip "sam $v $dtype batches"; continue; }
-            VLEM_BENCH_DEVICE=cuda VLEM_BENCH_DTYPE=$dtype timeout "$limit" \
-                "$G/bin/examples/sam_bench" --variant "$v" --points-per-side 16 --refine off,on \
-                --points-per-batch 32,64,256 >"$log" 2>&1
-            rc=$?
-            if [ "$rc" = 0 ]; then
+            step "sam $v $dtype batches" 120 "$log" env VLEM_BENCH_DEVICE=cuda \
+                VLEM_BENCH_DTYPE="$dtype" "$G/bin/examples/sam_bench" --variant "$v" \
+                --points-per-side 16 --refine off,on --points-per-batch 32,64,256
+            case $? in
+            0)
                 say "   sam $v $dtype by points_per_batch:"
                 grep -E '^\| [A-Za-z]+ \| [0-9]' "$log" | sed 's/^/     /' | tee -a "$SUMMARY"
-            else
-                say "   sam $v $dtype batches: FAILED, exit $rc: $(tail -n 3 "$log" | tr '\n' ' ')"
-                failed=$((failed + 1))
-            fi
+                ;;
+            1) fail "sam $v $dtype batches" "$log" ;;
+            esac
         done
     done
 }
@@ -324,18 +340,14 @@ PY
 
 # `vlem run` of CONFIG on the shared sequence into OUT/NAME, its line in the summary.
 e2e_run() {
-    local name=$1 config=$2 limit rc
+    local name=$1 config=$2
     shift 2
-    limit=$(limit 180) || { skip "$name"; return; }
-    timeout "$limit" "$G/bin/vlem" run --config "$config" --dataset "$G/data/icl-livingroom1" \
-        --out "$OUT/$name" "$@" >"$OUT/$name.log" 2>&1
-    rc=$?
-    if [ "$rc" = 0 ]; then
-        e2e_line "$OUT/$name/stats.json" | tee "$OUT/$name.json" | sed 's/^/     /' | tee -a "$SUMMARY"
-    else
-        say "   $name: FAILED, exit $rc: $(tail -n 3 "$OUT/$name.log" | tr '\n' ' ')"
-        failed=$((failed + 1))
-    fi
+    step "$name" 180 "$OUT/$name.log" "$G/bin/vlem" run --config "$config" \
+        --dataset "$G/data/icl-livingroom1" --out "$OUT/$name" "$@"
+    case $? in
+    0) e2e_line "$OUT/$name/stats.json" | tee "$OUT/$name.json" | sed 's/^/     /' | tee -a "$SUMMARY" ;;
+    1) fail "$name" "$OUT/$name.log" ;;
+    esac
 }
 
 part_3() {
@@ -387,45 +399,33 @@ part_4() {
 
 part_5() {
     say "== 5. the map's device table: fusing a 640x480 frame into 1M x 512 (f16), queries ($(elapsed))"
-    local limit rc
-    limit=$(limit 240) || { skip "device table"; return; }
-    VLEM_BENCH_DEVICE=cuda timeout "$limit" "$G/bin/examples/maps_device_table" >"$OUT/device-table.log" 2>&1
-    rc=$?
-    if [ "$rc" = 0 ]; then
-        sed 's/^/   /' "$OUT/device-table.log" | tee -a "$SUMMARY"
-    else
-        say "   FAILED, exit $rc: $(tail -n 3 "$OUT/device-table.log" | tr '\n' ' ')"
-        failed=$((failed + 1))
-    fi
+    step "device table" 240 "$OUT/device-table.log" env VLEM_BENCH_DEVICE=cuda \
+        "$G/bin/examples/maps_device_table"
+    case $? in
+    0) sed 's/^/   /' "$OUT/device-table.log" | tee -a "$SUMMARY" ;;
+    1) fail "device table" "$OUT/device-table.log" ;;
+    esac
 }
 
 part_6() {
     say "== 6. per-op profiles (VLEM_PROFILE=1: the device synchronised around each step) ($(elapsed))"
-    local model=/tmp/clip-vit-b16-random dtype run name limit rc
+    local model=/tmp/clip-vit-b16-random dtype run name fused command log
     [ -f "$model/model.safetensors" ] || python3 bench/clip/make_random_b16.py "$model" >/dev/null
     # Launch overhead (issue 38 part 4), where the work is small: one crop and one text, vlem as
     # it runs and with its per-op timers, PyTorch eager and as a CUDA graph's replay.
-    if limit=$(limit 180); then
-        local log=$OUT/launch-overhead.log
-        {
-            VLEM_BENCH_DEVICE=cuda timeout "$((limit / 3))" "$G/bin/examples/clip_bench" "$model" \
-                --batch 1 --text 1 --repeat 20 &&
-                VLEM_PROFILE=1 VLEM_BENCH_DEVICE=cuda timeout "$((limit / 3))" \
-                    "$G/bin/examples/clip_bench" "$model" --batch 1 --text 1 --repeat 20 &&
-                timeout "$((limit / 3))" python3 -W ignore bench/clip/torch_bench.py "$model" \
-                    --device cuda --batch 1 --text 1 --repeat 20 --cuda-graph
-        } >"$log" 2>&1
-        rc=$?
-        if [ "$rc" = 0 ]; then
-            say "   launch overhead, one crop and one text (vlem plain, vlem profiled, PyTorch eager and graph):"
-            grep -E 'best' "$log" | sed 's/^/     /' | tee -a "$SUMMARY"
-        else
-            say "   launch overhead: FAILED, exit $rc: $(tail -n 3 "$log" | tr '\n' ' ')"
-            failed=$((failed + 1))
-        fi
-    else
-        skip "launch overhead"
-    fi
+    say "   launch overhead, one crop and one text (vlem plain, vlem profiled, PyTorch eager and graph):"
+    for run in "plain:0:$G/bin/examples/clip_bench $model --batch 1 --text 1 --repeat 20" \
+        "profiled:1:$G/bin/examples/clip_bench $model --batch 1 --text 1 --repeat 20" \
+        "torch:0:python3 -W ignore bench/clip/torch_bench.py $model --device cuda --batch 1 --text 1 --repeat 20 --cuda-graph"; do
+        IFS=: read -r name fused command <<<"$run"
+        log=$OUT/launch-overhead-$name.log
+        # shellcheck disable=SC2086 # the command's arguments are words
+        step "launch overhead, $name" 60 "$log" env VLEM_PROFILE="$fused" VLEM_BENCH_DEVICE=cuda $command
+        case $? in
+        0) grep -E 'best' "$log" | sed 's/^/     /' | tee -a "$SUMMARY" ;;
+        1) fail "launch overhead, $name" "$log" ;;
+        esac
+    done
     # name:dtype:fused:command; the last, NARADIO L/16 in f16 with the fused attention, gives the
     # step's share after the kernel.
     local runs=()
@@ -435,33 +435,31 @@ part_6() {
             "sam-vit-b:$dtype:0:sam_bench --variant vit-b --points-per-side 16 --refine off")
     done
     runs+=("naradio-l:f16:1:naradio_bench l 3")
-    local fused command log
     for run in "${runs[@]}"; do
         IFS=: read -r name dtype fused command <<<"$run"
         log=$OUT/profile-$name-$dtype$([ "$fused" = 1 ] && echo -fused).log
-        limit=$(limit 150) || { skip "profile $name $dtype"; continue; }
         # shellcheck disable=SC2086 # the command's arguments are words
-        VLEM_FUSED_ATTENTION=$fused VLEM_PROFILE=1 VLEM_BENCH_DEVICE=cuda VLEM_BENCH_DTYPE=$dtype \
-            timeout "$limit" "$G/bin/examples/"$command >"$log" 2>&1
-        rc=$?
-        if [ "$rc" = 0 ]; then
+        step "profile $name $dtype" 150 "$log" env VLEM_FUSED_ATTENTION="$fused" VLEM_PROFILE=1 \
+            VLEM_BENCH_DEVICE=cuda VLEM_BENCH_DTYPE="$dtype" "$G/bin/examples/"$command
+        case $? in
+        0)
             say "   $name $dtype$([ "$fused" = 1 ] && echo ", fused attention"), the three most expensive steps:"
             grep -A5 '^| step' "$log" | tail -n 3 | sed 's/^/     /' | tee -a "$SUMMARY"
-        else
-            say "   $name $dtype: FAILED, exit $rc: $(tail -n 3 "$log" | tr '\n' ' ')"
-            failed=$((failed + 1))
-        fi
+            ;;
+        1) fail "profile $name $dtype" "$log" ;;
+        esac
     done
-    # A timeline of one model, where NVIDIA's profiler is installed.
+    # A timeline of one model, where NVIDIA's profiler is installed (not counted as a failure
+    # where it cannot make one: the tool's own trouble, not vlem's).
     if ! command -v nsys >/dev/null; then
         say "   nsys: not installed here"
-    elif limit=$(limit 150); then
-        timeout "$limit" nsys profile --stats=true --force-overwrite true -o "$OUT/nsys-naradio-l" \
-            env VLEM_BENCH_DEVICE=cuda "$G/bin/examples/naradio_bench" l 3 \
-            >"$OUT/nsys-naradio-l.log" 2>&1 && say "   nsys: nsys-naradio-l.log" ||
-            say "   nsys failed: $(tail -n 2 "$OUT/nsys-naradio-l.log" | tr '\n' ' ')"
     else
-        skip "nsys"
+        step nsys 150 "$OUT/nsys-naradio-l.log" nsys profile --stats=true --force-overwrite true \
+            -o "$OUT/nsys-naradio-l" env VLEM_BENCH_DEVICE=cuda "$G/bin/examples/naradio_bench" l 3
+        case $? in
+        0) say "   nsys: nsys-naradio-l.log" ;;
+        1) say "   nsys failed: $(tail -n 2 "$OUT/nsys-naradio-l.log" | tr '\n' ' ')" ;;
+        esac
     fi
 }
 
