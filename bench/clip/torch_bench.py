@@ -78,9 +78,9 @@ def timed(call, args):
 
 
 def timed_graph(call, args):
-    """The times of `args.repeat` replays of `call` captured once in a CUDA graph, in inference
-    mode: warmed up on a side stream first, as PyTorch's capture needs, the same inputs (static
-    buffers) in every replay."""
+    """The times of `args.repeat` replays (as `timed` times calls) of `call` captured once in a
+    CUDA graph, in inference mode: warmed up on a side stream first, as PyTorch's capture needs,
+    the same inputs (static buffers) in every replay."""
     with torch.inference_mode():
         side = torch.cuda.Stream()
         side.wait_stream(torch.cuda.current_stream())
@@ -91,15 +91,7 @@ def timed_graph(call, args):
         graph = torch.cuda.CUDAGraph()
         with torch.cuda.graph(graph):
             call()
-        graph.replay()
-        torch.cuda.synchronize()
-        times = []
-        for _ in range(args.repeat):
-            t = time.perf_counter()
-            graph.replay()
-            torch.cuda.synchronize()
-            times.append(time.perf_counter() - t)
-    return times
+    return timed(graph.replay, args)
 
 
 def time_text(model, args):
