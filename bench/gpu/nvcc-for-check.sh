@@ -1,0 +1,88 @@
+#!/usr/bin/env bash
+# An nvcc for `cargo check --features cuda`, set as NVCC: candle's own kernels get empty outputs,
+# every other call goes to the real nvcc on PATH (vlem's kernel, `--version`, ...).
+#
+#   source bench/gpu/cuda-toolchain.sh
+#   NVCC="$PWD/bench/gpu/nvcc-for-check.sh" cargo check -p vlem-backends --features clip,cuda
+#
+# Why: candle-kernels' build script compiles its 26 .cu files with nvcc whenever the `cuda`
+# feature is on, `cargo check` included: PTX for its element-wise kernels and a static library of
+# quantized-matmul and mixture-of-experts kernels that vlem never calls. That is ~10 minutes on
+# two cores, about nine tenths of CI's `cuda` step, and a check reads none of it (the PTX goes
+# into `include_str!`, the library is never linked). candle is pinned by Cargo.lock and the
+# compiler by cuda-toolchain.sh, so those kernels compile the same on every run; they are
+# compiled for real by every build that links (bench/gpu/build.sh, `cargo build --features cuda`).
+# vlem's own kernel (vlem-backends/src/fused_attention.cu) is not candle's: it goes to the real
+# nvcc here, so an error in it still fails the check.
+#
+# Only with a target folder of its own (CARGO_TARGET_DIR, absolute): the empty kernels stay in that
+# folder's build-script outputs, and candle's build script keeps outputs it finds, so a build that
+# links in the same folder would get them. It refuses to stand in for candle's kernels otherwise.
+# Never use it for a build that links or runs.
+set -euo pipefail
+
+real_nvcc() {
+    local self candidate
+    self=$(realpath "${BASH_SOURCE[0]}")
+    # The first nvcc on PATH that is not this script.
+    while IFS= read -r candidate; do
+        if [ "$(realpath "$candidate")" != "$self" ]; then
+            exec "$candidate" "$@"
+        fi
+    done < <(type -ap nvcc)
+    echo "nvcc-for-check: no nvcc on PATH (source bench/gpu/cuda-toolchain.sh first)" >&2
+    exit 127
+}
+
+# candle-kernels' build script runs in its package directory (the registry's candle-kernels-X.Y.Z)
+# and names its sources relative to it; an input is candle's when it lies in that directory.
+is_candle_source() {
+    local source
+    source=$(realpath -m "$1")
+    [[ $source == */candle-kernels-[0-9]*/src/* ]]
+}
+
+args=("$@")
+inputs=() output="" output_dir="" mode=""
+while [ $# -gt 0 ]; do
+    arg=$1
+    shift
+    case $arg in
+        --ptx) mode=ptx ;;
+        -c) mode=object ;;
+        --lib) mode=lib ;;
+        -o) output=${1:-} ;;
+        --output-directory) output_dir=${1:-} ;;
+        *.cu) inputs+=("$arg") ;;
+    esac
+done
+
+# Candle's calls run inside its build script, whose OUT_DIR must lie in the folder of its own.
+check_target_dir() {
+    if [[ ${CARGO_TARGET_DIR:-} != /* || ${OUT_DIR:-} != "${CARGO_TARGET_DIR%/}"/* ]]; then
+        echo "nvcc-for-check: candle's kernels get empty outputs only in a target folder of its own;" \
+            "set CARGO_TARGET_DIR to an absolute folder used for nothing but checks" \
+            "(CARGO_TARGET_DIR='${CARGO_TARGET_DIR:-}', OUT_DIR='${OUT_DIR:-}')" >&2
+        exit 2
+    fi
+}
+
+# Only candle's three shapes of call get empty outputs; anything else (vlem's kernel, --version,
+# --list-gpu-code) goes to the real nvcc with its arguments.
+if [ "$mode" = lib ] && [[ $output == */libmoe.a && $PWD == */candle-kernels-[0-9]* ]]; then
+    check_target_dir
+    # An empty archive: the static library of the quantized and expert kernels.
+    printf '!<arch>\n' > "$output"
+elif [ "$mode" = ptx ] && [ -n "$output_dir" ] && [ ${#inputs[@]} -eq 1 ] \
+    && is_candle_source "${inputs[0]}"; then
+    check_target_dir
+    name=$(basename "${inputs[0]}" .cu)
+    printf '// %s: not compiled (bench/gpu/nvcc-for-check.sh, for cargo check only)\n' "$name" \
+        > "$output_dir/$name.ptx"
+elif [ "$mode" = object ] && [ -n "$output" ] && [ ${#inputs[@]} -eq 1 ] \
+    && is_candle_source "${inputs[0]}"; then
+    check_target_dir
+    : > "$output"
+else
+    real_nvcc "${args[@]}"
+fi
