@@ -3,17 +3,18 @@
 # every other call goes to the real nvcc on PATH (vlem's kernel, `--version`, ...).
 #
 #   source bench/gpu/cuda-toolchain.sh
-#   NVCC="$PWD/bench/gpu/nvcc-for-check.sh" cargo check -p vlem-backends --features clip,cuda
+#   CARGO_TARGET_DIR="$PWD/target/cuda-check" NVCC="$PWD/bench/gpu/nvcc-for-check.sh" \
+#       cargo check -p vlem-backends --features clip,cuda
 #
-# Why: candle-kernels' build script compiles its 26 .cu files with nvcc whenever the `cuda`
-# feature is on, `cargo check` included: PTX for its element-wise kernels and a static library of
-# quantized-matmul and mixture-of-experts kernels that vlem never calls. That is ~10 minutes on
-# two cores, about nine tenths of CI's `cuda` step, and a check reads none of it (the PTX goes
-# into `include_str!`, the library is never linked). candle is pinned by Cargo.lock and the
-# compiler by cuda-toolchain.sh, so those kernels compile the same on every run; they are
-# compiled for real by every build that links (bench/gpu/build.sh, `cargo build --features cuda`).
-# vlem's own kernel (vlem-backends/src/fused_attention.cu) is not candle's: it goes to the real
-# nvcc here, so an error in it still fails the check.
+# Why: candle-kernels' build script compiles its 26 .cu files with nvcc whenever the `cuda` feature
+# is on, `cargo check` included: PTX for its element-wise kernels and a static library of
+# quantized-matmul and mixture-of-experts kernels that vlem never calls. That is ~10 minutes on two
+# cores, nine tenths of CI's `cuda` step before this script, and a check reads none of it (the PTX
+# goes into `include_str!`, the library is never linked). candle is pinned by Cargo.lock and the
+# compiler by cuda-toolchain.sh, so those kernels compile the same on every run; they are compiled
+# for real by every build that links (bench/gpu/build.sh, `cargo build --features cuda`). vlem's own
+# kernel (vlem-backends/src/fused_attention.cu) is not candle's: it goes to the real nvcc here, so
+# an error in it still fails the check.
 #
 # Only with a target folder of its own (CARGO_TARGET_DIR, absolute): the empty kernels stay in that
 # folder's build-script outputs, and candle's build script keeps outputs it finds, so a build that
