@@ -35,14 +35,6 @@ real_nvcc() {
     exit 127
 }
 
-# candle-kernels' build script runs in its package directory (the registry's candle-kernels-X.Y.Z)
-# and names its sources relative to it; an input is candle's when it lies in that directory.
-is_candle_source() {
-    local source
-    source=$(realpath -m "$1")
-    [[ $source == */candle-kernels-[0-9]*/src/* ]]
-}
-
 args=("$@")
 inputs=() output="" output_dir="" mode=""
 while [ $# -gt 0 ]; do
@@ -68,22 +60,27 @@ check_target_dir() {
     fi
 }
 
-# Only candle's three shapes of call get empty outputs; anything else (vlem's kernel, --version,
-# --list-gpu-code) goes to the real nvcc with its arguments.
-if [ "$mode" = lib ] && [[ $output == */libmoe.a && $PWD == */candle-kernels-[0-9]* ]]; then
-    check_target_dir
-    # An empty archive: the static library of the quantized and expert kernels.
-    printf '!<arch>\n' > "$output"
-elif [ "$mode" = ptx ] && [ -n "$output_dir" ] && [ ${#inputs[@]} -eq 1 ] \
-    && is_candle_source "${inputs[0]}"; then
-    check_target_dir
-    name=$(basename "${inputs[0]}" .cu)
-    printf '// %s: not compiled (bench/gpu/nvcc-for-check.sh, for cargo check only)\n' "$name" \
-        > "$output_dir/$name.ptx"
-elif [ "$mode" = object ] && [ -n "$output" ] && [ ${#inputs[@]} -eq 1 ] \
-    && is_candle_source "${inputs[0]}"; then
-    check_target_dir
-    : > "$output"
-else
-    real_nvcc "${args[@]}"
+# candle's calls come from its build script, which runs in its package directory (the registry's
+# candle-kernels-X.Y.Z); of those, only its three shapes of compilation get empty outputs. Anything
+# else (vlem's kernel, --version, --list-gpu-code) goes to the real nvcc with its arguments.
+stand_in=""
+if [[ $PWD == */candle-kernels-[0-9]* ]]; then
+    case $mode in
+        lib) [[ $output == */libmoe.a ]] && stand_in=lib ;;
+        ptx) [ -n "$output_dir" ] && [ ${#inputs[@]} -eq 1 ] && stand_in=ptx ;;
+        object) [ -n "$output" ] && [ ${#inputs[@]} -eq 1 ] && stand_in=object ;;
+    esac
 fi
+[ -n "$stand_in" ] || real_nvcc "${args[@]}"
+
+check_target_dir
+case $stand_in in
+    # An empty archive: the static library of the quantized and expert kernels.
+    lib) printf '!<arch>\n' >"$output" ;;
+    ptx)
+        name=$(basename "${inputs[0]}" .cu)
+        printf '// %s: not compiled (bench/gpu/nvcc-for-check.sh, for cargo check only)\n' \
+            "$name" >"$output_dir/$name.ptx"
+        ;;
+    object) : >"$output" ;;
+esac
