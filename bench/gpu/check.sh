@@ -9,7 +9,8 @@
 #   VLEM_GPU_CHECK_BUDGET_S=0 bench/gpu/check.sh     # no time budget
 #
 # Through the device tool: run(command='bench/gpu/check.sh "$OUT"', carry=["target/gpu-check"],
-# timeout_s=600). It is written for that tool's limits:
+# timeout_s=600); before that, bench/gpu/rehearse.sh runs it here with a stand-in driver that has
+# no GPU, to catch a wrong path or flag. It is written for that tool's limits:
 # - A time budget (VLEM_GPU_CHECK_BUDGET_S, default 540 s, under the tool's 600 s a command):
 #   each step's own time limit is cut to what the budget has left, and a step that would start
 #   with under 20 s left is skipped with a line saying so. The summary is always complete, and
