@@ -106,14 +106,13 @@ step() {
     [ "$STEP_RC" = 0 ] || return 1
 }
 # A failed step in the summary: `fail NAME LOG [PATTERN]`, with its exit status (124: out of time),
-# its time and LOG's first three lines matching PATTERN (else LOG's last three); counted.
+# its time and LOG's first three lines matching PATTERN (by default the error's own lines: a Rust
+# error or panic, a Python exception, since with RUST_BACKTRACE set a binary's last lines are the
+# frames of its backtrace; where none matches, LOG's last three); counted.
 fail() {
     local lines
-    if [ -n "${3:-}" ]; then
-        lines=$(grep -E "$3" "$2" | head -n 3)
-    else
-        lines=$(tail -n 3 "$2")
-    fi
+    lines=$(grep -E "${3:-^Error: |^error: |panicked at|^[A-Za-z.]*(Error|Exception): }" "$2" | head -n 3)
+    [ -n "$lines" ] || lines=$(tail -n 3 "$2")
     say "   $1: FAILED, exit $STEP_RC ($STEP_S s): $(echo "$lines" | tr '\n' ' ')"
     failed=$((failed + 1))
 }
@@ -436,18 +435,22 @@ part_6() {
             "sam-vit-b:$dtype:0:sam_bench --variant vit-b --points-per-side 16 --refine off")
     done
     runs+=("naradio-l:f16:1:naradio_bench l 3")
+    local label
     for run in "${runs[@]}"; do
         IFS=: read -r name dtype fused command <<<"$run"
+        label="$name $dtype$([ "$fused" = 1 ] && echo ", fused attention")"
         log=$OUT/profile-$name-$dtype$([ "$fused" = 1 ] && echo -fused).log
         # shellcheck disable=SC2086 # the command's arguments are words
-        step "profile $name $dtype" 150 "$log" env VLEM_FUSED_ATTENTION="$fused" VLEM_PROFILE=1 \
+        step "profile $label" 150 "$log" env VLEM_FUSED_ATTENTION="$fused" VLEM_PROFILE=1 \
             VLEM_BENCH_DEVICE=cuda VLEM_BENCH_DTYPE="$dtype" "$G/bin/examples/"$command
         case $? in
         0)
-            say "   $name $dtype$([ "$fused" = 1 ] && echo ", fused attention"), the three most expensive steps:"
-            grep -A5 '^| step' "$log" | tail -n 3 | sed 's/^/     /' | tee -a "$SUMMARY"
+            # The table's rows come most expensive first, after its header and separator lines.
+            say "   $label, the three most expensive steps:"
+            awk '/^\| step \|/ { table = 1; next } table && /^\|---/ { next }
+                table && shown < 3 { print "     " $0; shown++ }' "$log" | tee -a "$SUMMARY"
             ;;
-        1) fail "profile $name $dtype" "$log" ;;
+        1) fail "profile $label" "$log" ;;
         esac
     done
     # A timeline of one model, where NVIDIA's profiler is installed (not counted as a failure
