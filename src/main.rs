@@ -60,6 +60,9 @@ enum Command {
 }
 
 fn main() -> std::process::ExitCode {
+    // Before any thread starts: candle would otherwise count the cores anew, from /proc/cpuinfo,
+    // for every op it runs on the CPU (`RAYON_NUM_THREADS`, kept where set).
+    vlem_backends::use_all_cpus_once();
     // The model backends allocate large buffers per op: keep freed ones for reuse (2x on a
     // NARADIO frame; `VLEM_KEEP_FREED_MEMORY=0` turns it off).
     vlem_backends::keep_freed_memory();

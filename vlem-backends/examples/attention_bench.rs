@@ -37,6 +37,8 @@ fn time(device: &Device, iterations: usize, f: impl Fn() -> Result<Tensor>) -> R
 }
 
 fn main() -> Result<()> {
+    // As the `vlem` binary runs the models.
+    vlem_backends::use_all_cpus_once();
     let iterations: usize = std::env::args().nth(1).map_or(Ok(20), |s| s.parse())?;
     let device = vlem_backends::ComputeDevice::from_env("VLEM_BENCH_DEVICE")?.open()?;
     let device_name = if device.is_cuda() { "cuda" } else { "cpu" };

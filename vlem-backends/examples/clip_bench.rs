@@ -28,6 +28,7 @@ fn main() -> anyhow::Result<()> {
     use vlem_backends::clip::ClipModel;
 
     // As the `vlem` binary runs the models.
+    vlem_backends::use_all_cpus_once();
     vlem_backends::keep_freed_memory();
 
     let mut dir = None;

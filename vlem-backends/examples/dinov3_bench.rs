@@ -171,6 +171,7 @@ fn frame() -> Result<RgbImage> {
 
 fn main() -> Result<()> {
     // As the `vlem` binary runs the models.
+    vlem_backends::use_all_cpus_once();
     vlem_backends::keep_freed_memory();
     let args: Vec<String> = std::env::args().skip(1).collect();
     let sides: Vec<u32> = args.first().map_or(Ok(vec![448]), |s| {

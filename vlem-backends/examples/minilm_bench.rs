@@ -24,6 +24,7 @@ fn texts(n: usize) -> Vec<String> {
 
 fn main() -> anyhow::Result<()> {
     // As the `vlem` binary runs the models.
+    vlem_backends::use_all_cpus_once();
     vlem_backends::keep_freed_memory();
     let mut counts = Vec::new();
     let mut repeat = 5usize;

@@ -46,6 +46,7 @@ fn config(embed_dim: usize, depth: usize, num_heads: usize) -> RadioConfig {
 
 fn main() -> anyhow::Result<()> {
     // As the `vlem` binary runs the models.
+    vlem_backends::use_all_cpus_once();
     vlem_backends::keep_freed_memory();
     let args: Vec<String> = std::env::args().collect();
     let which = args.get(1).map_or("both", String::as_str);

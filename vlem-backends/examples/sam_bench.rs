@@ -84,6 +84,7 @@ fn write_synthetic_weights(variant: SamVariant, path: &str) -> Result<()> {
 
 fn main() -> Result<()> {
     // As the `vlem` binary runs the models.
+    vlem_backends::use_all_cpus_once();
     vlem_backends::keep_freed_memory();
     let mut variant = SamVariant::MobileSam;
     let mut sides = vec![32usize, 16];

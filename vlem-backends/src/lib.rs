@@ -57,12 +57,14 @@
 mod allocator;
 mod device;
 mod error;
+mod threads;
 
 pub use allocator::{KEEP_FREED_MEMORY_ENV, keep_freed_memory};
 pub use device::{
     CUDA_BUILD_HINT, ComputeDevice, DeviceMemoryPeak, ModelDtype, kernels_compute_capability,
 };
 pub use error::{BackendError, MINILM_INSTALL_HINT};
+pub use threads::{CPU_THREADS_ENV, use_all_cpus_once};
 
 #[cfg(feature = "label-text")]
 pub mod label_text;
@@ -94,7 +96,8 @@ pub mod onnx;
 #[cfg(feature = "sam")]
 pub mod sam;
 
-// CPU kernels of the candle models (with `allocator`, the crate's only `unsafe`: the `gemm` call).
+// CPU kernels of the candle models (their `gemm` call is one of the crate's few `unsafe` blocks,
+// with `allocator`'s `mallopt`, `threads`' environment write and `fused_attention`'s launch).
 #[cfg(any(
     feature = "clip",
     feature = "dinov3",

@@ -11,6 +11,7 @@ import json
 import os
 import pathlib
 import subprocess
+import sys
 import threading
 
 import numpy as np
@@ -275,3 +276,18 @@ def test_errors_are_typed_and_carry_the_command_line_message(tmp_path):
         vlem.Pipeline(42)
     with pytest.raises(vlem.ConfigError, match="python"):
         vlem.Pipeline(config({"kind": "python", "class": "X"}))
+
+
+@pytest.mark.parametrize("set_before, expected", [(None, "cpus"), ("1", "1"), ("all", "cpus")])
+def test_the_import_gives_candle_its_thread_count(set_before, expected):
+    # candle re-reads /proc/cpuinfo on every CPU op unless RAYON_NUM_THREADS holds a count: the
+    # import sets it to the CPUs this process may use, and keeps a count set before it.
+    env = {k: v for k, v in os.environ.items() if k != "RAYON_NUM_THREADS"}
+    if set_before is not None:
+        env["RAYON_NUM_THREADS"] = set_before
+    out = subprocess.run(
+        [sys.executable, "-c", "import os, vlem; print(os.environ['RAYON_NUM_THREADS'])"],
+        env=env, capture_output=True, text=True, check=True,
+    )
+    cpus = len(os.sched_getaffinity(0)) if hasattr(os, "sched_getaffinity") else os.cpu_count()
+    assert out.stdout.strip() == (str(cpus) if expected == "cpus" else expected)

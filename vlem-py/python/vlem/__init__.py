@@ -24,6 +24,17 @@ import warnings
 from dataclasses import dataclass
 from typing import Any, Callable, List, Optional, Union
 
+# Before the native module loads: candle, the models' CPU backend, looks up its thread count on
+# every operation and, with RAYON_NUM_THREADS unset, counts the cores anew from /proc/cpuinfo each
+# time (vlem-backends/src/threads.rs). As the ``vlem`` command does, give it the CPUs this process
+# may use; a value set before the import is kept.
+_threads = os.environ.get("RAYON_NUM_THREADS", "")
+if not (_threads.isascii() and _threads.isdigit() and int(_threads) > 0):
+    os.environ["RAYON_NUM_THREADS"] = str(
+        len(os.sched_getaffinity(0)) if hasattr(os, "sched_getaffinity") else (os.cpu_count() or 1)
+    )
+del _threads
+
 from ._vlem import (  # noqa: F401  (re-exported)
     ConfigError,
     DatasetError,
