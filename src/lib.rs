@@ -9,13 +9,13 @@
 //!
 //! Without `default-features`, the `cli` feature is off too: the command's own dependencies
 //! (argument parsing, progress bars, plots, signal handling) are not compiled.
+//! `tests/library-user/` is such a program, outside the workspace; CI builds and runs it.
 //!
 //! A program that runs the candle models (CLIP, SAM, dinov3, NARADIO, MiniLM) on the CPU calls
 //! [`backends::use_all_cpus_once`] and [`backends::keep_freed_memory`] first thing in `main`, as
 //! the `vlem` command does: the first gives candle its thread count once (without
 //! `RAYON_NUM_THREADS` it recounts the cores from /proc/cpuinfo for every op), the second keeps
 //! freed model buffers for reuse.
-//! `tests/library-user/` is such a program, outside the workspace; CI builds and runs it.
 //!
 //! ```no_run
 //! use vlem::prelude::*;

@@ -7,7 +7,7 @@
 //! cached) opens and parses /proc/cpuinfo anew each time. MobileSAM's image encoder, many small
 //! ops, opened it 87,000 times in 20 s (under strace) on this project's 2-core machine and ran
 //! 1.5–1.9× slower than with the variable set (BENCHMARKS.md, "candle's thread count"); models of
-//! a few large products (NARADIO) lose a few percent. Setting the variable once makes candle read the environment
+//! a few large products (NARADIO) lose a few percent. Set once, the variable is what candle reads
 //! instead.
 //!
 //! It writes the process environment, which is only sound while no other thread reads or writes
