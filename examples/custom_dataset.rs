@@ -148,7 +148,7 @@ fn main() -> Result<()> {
     // `kind = "auto"`: the probe recognises the folder by its frames.txt.
     let text = "[dataset]\nmax_frames = 10\n\n[tracker]\nkind = \"odometry\"\n\n\
                 [encoder]\nkind = \"colour-names\"\n\n[map]\nkind = \"point-cloud\"\n";
-    let config = Config::from_toml(text).map_err(anyhow::Error::msg)?;
+    let config = Config::from_toml(text)?;
     let detected = vlem::datasets::detect_kind(&folder)?;
     println!("detected: {detected}");
     let ctx = BuildContext::for_config_dir(&folder)?;
@@ -165,9 +165,7 @@ fn main() -> Result<()> {
     // An unknown key of the reader's own is refused, naming it and (found again in the text) its
     // line.
     let typo = "[dataset]\nkind = \"image-list\"\nlsit = \"x.txt\"\n";
-    let config = Config::from_toml(typo)
-        .map_err(anyhow::Error::msg)?
-        .with_source_text(typo, "typo.toml");
+    let config = Config::from_toml(typo)?.with_source_text(typo, "typo.toml");
     let err = vlem::datasets::open(&config.dataset, &folder)
         .err()
         .context("the typo was accepted")?;

@@ -195,7 +195,7 @@ pixel_stride = 2
 
 fn main() -> Result<()> {
     let root = Path::new(env!("CARGO_MANIFEST_DIR"));
-    let config = Config::from_toml(CONFIG).map_err(anyhow::Error::msg)?;
+    let config = Config::from_toml(CONFIG)?;
     let ctx = BuildContext {
         config_dir: root.to_path_buf(),
         embedding_dim: None,

@@ -122,8 +122,7 @@ pub fn execute(args: &RunArgs) -> Result<()> {
 /// # Errors
 /// As [`execute`].
 pub fn demo(args: &DemoArgs) -> Result<()> {
-    let config = Config::from_toml(DEMO_CONFIG)
-        .map_err(|message| anyhow::anyhow!("embedded demo config: {message}"))?;
+    let config = Config::from_toml(DEMO_CONFIG).context("the embedded demo config")?;
     let ctx = BuildContext::for_config_dir(Path::new(DEMO_CONFIG_DIR))?;
     run(
         config,

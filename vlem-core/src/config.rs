@@ -100,7 +100,7 @@ impl Config {
             path: path.to_path_buf(),
             source,
         })?;
-        let config = Self::from_toml(&text).map_err(|message| CoreError::Config {
+        let config = parse(&text).map_err(|message| CoreError::Config {
             path: path.to_path_buf(),
             message,
         })?;
@@ -131,18 +131,24 @@ impl Config {
         }
     }
 
-    /// Parses config text; the error is the parser's message.
+    /// Parses config text (from no file: [`Config::from_file`] names the file in its errors).
     ///
     /// # Errors
-    /// The TOML parser's message (line, column, key).
-    pub fn from_toml(text: &str) -> std::result::Result<Self, String> {
-        toml::from_str(text).map_err(|e| e.to_string().trim_end().to_owned())
+    /// [`CoreError::ConfigText`] with the TOML parser's message (line, column, key).
+    pub fn from_toml(text: &str) -> Result<Self> {
+        parse(text).map_err(|message| CoreError::ConfigText { message })
     }
 
     /// The config as TOML text.
     pub fn to_toml(&self) -> String {
         toml::to_string_pretty(self).unwrap_or_default()
     }
+}
+
+/// Config text parsed, or the TOML parser's message (line, column, key) for an error that names
+/// where the text came from.
+fn parse(text: &str) -> std::result::Result<Config, String> {
+    toml::from_str(text).map_err(|e| e.to_string().trim_end().to_owned())
 }
 
 /// `error` with `origin` and the line of `text` that holds the key it names, where it is an
@@ -532,11 +538,19 @@ mod tests {
     #[test]
     fn unknown_keys_are_errors_that_name_the_key_and_line() {
         let err = Config::from_toml("[pipeline]\nmode = \"offline\"\nthreds = 2\n").unwrap_err();
-        assert!(err.contains("line 3"), "{err}");
+        // Text from no file: the crate's error, without a path.
+        assert!(matches!(err, CoreError::ConfigText { .. }), "{err:?}");
+        let err = err.to_string();
+        assert!(
+            err.starts_with("config: ") && err.contains("line 3"),
+            "{err}"
+        );
         assert!(err.contains("unknown field `threds`"), "{err}");
-        let err = Config::from_toml("[pipline]\n").unwrap_err();
+        let err = Config::from_toml("[pipline]\n").unwrap_err().to_string();
         assert!(err.contains("unknown field `pipline`"), "{err}");
-        let err = Config::from_toml("[pipeline]\nmode = \"fast\"\n").unwrap_err();
+        let err = Config::from_toml("[pipeline]\nmode = \"fast\"\n")
+            .unwrap_err()
+            .to_string();
         assert!(err.contains("unknown variant `fast`"), "{err}");
     }
 

@@ -142,6 +142,13 @@ pub enum CoreError {
         /// What is wrong, naming the key where possible.
         message: String,
     },
+    /// Configuration text that cannot be parsed ([`Config::from_toml`](crate::Config::from_toml):
+    /// text from no file).
+    #[error("config: {message}")]
+    ConfigText {
+        /// The TOML parser's message: line, column and key.
+        message: String,
+    },
     /// The encoder and the map disagree on the embedding dimension.
     #[error(
         "the encoder `{encoder}` produces {encoder_dim}-d embeddings but the map `{map}` stores {map_dim}-d embeddings; set [map] dim = {encoder_dim} or remove it"

@@ -346,7 +346,7 @@ impl Study {
                     format!("cell {} ({}): {message}", cell.index, cell.label()),
                 )
             };
-            let parsed = Config::from_toml(&text).map_err(in_cell)?;
+            let parsed = Config::from_toml(&text).map_err(|e| in_cell(e.to_string()))?;
             // The dataset reader's own keys too (the cell's paths are absolute by now).
             vlem_datasets::check_settings(&parsed.dataset, parsed.dataset.path.as_deref())
                 .map_err(|e| in_cell(e.to_string()))?;

@@ -71,6 +71,7 @@ fn class_of(error: &CoreError) -> fn(String) -> PyErr {
         | CoreError::InvalidParams { .. }
         | CoreError::ConfigRead { .. }
         | CoreError::Config { .. }
+        | CoreError::ConfigText { .. }
         | CoreError::EmbeddingDimensionMismatch { .. }
         | CoreError::MissingStage { .. } => ConfigError::new_err,
         CoreError::BufferSize { .. }

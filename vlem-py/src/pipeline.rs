@@ -144,7 +144,7 @@ pub(crate) fn load_config(
     config_dir: Option<PathBuf>,
 ) -> PyResult<(Config, BuildContext)> {
     let text_context = |text: &str| -> PyResult<(Config, BuildContext)> {
-        let config = Config::from_toml(text).map_err(errors::ConfigError::new_err)?;
+        let config = Config::from_toml(text).map_err(errors::core)?;
         let dir = match config_dir.clone() {
             Some(dir) => dir,
             None => std::env::current_dir().map_err(|e| PyRuntimeError::new_err(e.to_string()))?,

@@ -74,7 +74,7 @@ fn run() -> Result<(), String> {
             Ok(_) => return Err("a [map] typo was accepted".to_owned()),
             Err(e) => e.to_string(),
         },
-        Err(e) => return Err(e),
+        Err(e) => return Err(e.to_string()),
     };
     let line = typo
         .lines()
@@ -86,7 +86,7 @@ fn run() -> Result<(), String> {
         return Err(format!("the typo's error does not name its line: {err}"));
     }
 
-    let config = Config::from_toml(CONFIG)?;
+    let config = Config::from_toml(CONFIG).map_err(|e| e.to_string())?;
     let dir = std::env::temp_dir();
     let ctx = BuildContext::for_config_dir(&dir).map_err(|e| e.to_string())?;
     let mut pipeline = Pipeline::from_config(&config, &ctx).map_err(|e| e.to_string())?;

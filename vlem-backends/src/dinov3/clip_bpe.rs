@@ -92,14 +92,20 @@ impl ClipBpe {
         flate2::read::GzDecoder::new(file)
             .read_to_string(&mut text)
             .map_err(|e| invalid(format!("not a gzipped UTF-8 text file: {e}")))?;
-        Self::from_merges(&text).map_err(invalid)
+        Self::parse(&text).map_err(invalid)
     }
 
     /// From the merge list's text: a header line, then one `left right` pair per line.
     ///
     /// # Errors
-    /// A message for a line that is not a pair, or a file without merges.
-    pub fn from_merges(text: &str) -> Result<Self, String> {
+    /// [`BackendError::InvalidInput`] naming a line that is not a pair, or a text without merges.
+    pub fn from_merges(text: &str) -> Result<Self, BackendError> {
+        Self::parse(text)
+            .map_err(|reason| BackendError::InvalidInput(format!("CLIP merge list: {reason}")))
+    }
+
+    /// [`Self::from_merges`], the error in words for the caller to place (a file, a text).
+    fn parse(text: &str) -> Result<Self, String> {
         let mut merges = Vec::new();
         for (index, line) in text.lines().enumerate().skip(1).take(MERGES_USED) {
             if line.is_empty() {
@@ -402,7 +408,11 @@ mod tests {
 
     #[test]
     fn malformed_merge_lists_are_errors() {
-        assert!(ClipBpe::from_merges("#version\n").is_err());
-        assert!(ClipBpe::from_merges("#version\na b c\n").is_err());
+        let empty = ClipBpe::from_merges("#version\n").unwrap_err().to_string();
+        assert_eq!(empty, "CLIP merge list: it holds no merges");
+        let triple = ClipBpe::from_merges("#version\na b c\n")
+            .unwrap_err()
+            .to_string();
+        assert!(triple.contains("line 2 is not a merge pair"), "{triple}");
     }
 }
