@@ -91,7 +91,7 @@ def dinov3(py, threads, repeat):
     ours = run([os.path.join(EXAMPLES, "dinov3_bench"), "448", str(repeat)], threads)
     ref = run([py, "bench/dinov3/torch_bench.py", "--threads", str(threads), "--repeat",
                str(repeat), "--device", DEVICE, "--dtype", DTYPE], threads)
-    return (find(r"([\d.]+) ms/frame", ours, "vlem time"),
+    return (find(r"best ([\d.]+) ms/frame", ours, "vlem time"),
             "transformers DINOv3ViTModel + dino.txt head",
             find(r"best ([\d.]+) ms/frame", ref, "torch time"))
 
@@ -100,13 +100,14 @@ def naradio(py, threads, repeat, size):
     ours = run([os.path.join(EXAMPLES, "naradio_bench"), size, str(repeat)], threads)
     ref = run([py, "bench/naradio/torch_bench.py", "--threads", str(threads), "--model", size,
                "--repeat", str(repeat), "--device", DEVICE, "--dtype", DTYPE], threads)
-    return (find(r"([\d.]+) ms/frame", ours, "vlem time"), "timm ViT trunk (no NACLIP, no adaptor)",
+    return (find(r"best ([\d.]+) ms/frame", ours, "vlem time"), "timm ViT trunk (no NACLIP, no adaptor)",
             find(r"best ([\d.]+) ms/frame", ref, "torch time"))
 
 
-def sam(py, threads, variant):
+def sam(py, threads, repeat, variant):
     out = run(["bench/sam/side_by_side.sh", "--threads", str(threads), "--device", DEVICE,
-               "--dtype", DTYPE, variant], threads, env={"PYTHON": py, "VLEM_EXAMPLES": EXAMPLES})
+               "--dtype", DTYPE, "--repeat", str(repeat), variant], threads,
+              env={"PYTHON": py, "VLEM_EXAMPLES": EXAMPLES})
     row = json.loads(out.strip().splitlines()[-1])
     return row["vlem_generator_s"] * 1e3, row["reference"], row["reference_generator_s"] * 1e3
 
@@ -121,8 +122,8 @@ MODELS = {
     "dinov3": dinov3,
     "naradio-b": lambda py, t, r: naradio(py, t, r, "b"),
     "naradio-l": lambda py, t, r: naradio(py, t, r, "l"),
-    "sam-mobile": lambda py, t, r: sam(py, t, "mobile-sam"),
-    "sam-vit-b": lambda py, t, r: sam(py, t, "vit-b"),
+    "sam-mobile": lambda py, t, r: sam(py, t, r, "mobile-sam"),
+    "sam-vit-b": lambda py, t, r: sam(py, t, r, "vit-b"),
 }
 
 
@@ -148,6 +149,7 @@ def main():
         for t in a.threads:
             ours, ref_name, ref = MODELS[name](py, t, a.repeat)
             print(json.dumps({"model": name, "device": DEVICE, "dtype": DTYPE, "threads": t,
+                              "fused_attention": os.environ.get("VLEM_FUSED_ATTENTION") == "1",
                               "vlem_ms": round(ours, 1), "reference": ref_name,
                               "reference_ms": round(ref, 1),
                               "ratio_reference_over_vlem": round(ref / ours, 2)}), flush=True)
