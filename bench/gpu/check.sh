@@ -16,9 +16,11 @@
 #   with under 20 s left is skipped with a line saying so. The summary is always complete, and
 #   what did not fit is named in it (run those parts in a second call). A step whose line says
 #   "exit 124" ran out of its time.
-# - The parts run in the order of VLEM_GPU_CHECK_PARTS, by default "1 5 3 2 4 6": correctness
-#   first, then the issues' goals (the map on the device, the end-to-end rate, the models
-#   against PyTorch), then the rest.
+# - The parts run in the order of VLEM_GPU_CHECK_PARTS, by default "1 5 3 4 2 6 7": correctness
+#   first, then the issues' goals (the map on the device, the three end-to-end configurations,
+#   which are a few short runs, then the models against PyTorch, the longest part), then the
+#   profiles and the fused kernel under NVIDIA's checkers (the kernel is opt-in; its goldens are
+#   part 1's).
 # - The logs are written to target/gpu-check-out; after every part the summary (summary.txt) and
 #   the logs (logs.tar.gz: every log, JSON and config, not the runs' maps) are copied to
 #   HAND_BACK_DIR, two files, since the tool hands back at most eight.
@@ -27,9 +29,8 @@
 # 1. the golden tests of the candle backends (CLIP, dinov3 + dino.txt, NARADIO, SAM; MiniLM where
 #    its model is installed) with VLEM_TEST_DEVICE=cuda: the same goldens as on the CPU, each
 #    within 1e-3 in f32, and f16 and bf16 within their cosine bounds; TF32 products (tf32); the
-#    fused attention kernel against f32 attention and inside a NARADIO trunk (fused_attention),
-#    then under compute-sanitizer's memcheck and racecheck where the machine has it; the map's
-#    device table against the host table (maps_device_table);
+#    fused attention kernel against f32 attention and inside a NARADIO trunk (fused_attention);
+#    the map's device table against the host table (maps_device_table);
 # 2. each model's time per 640x480 frame on the GPU against PyTorch on the same GPU
 #    (bench/models/side_by_side.py --device cuda, one JSON line per model and type: models.jsonl),
 #    in f32 against PyTorch f32 and in f16 against PyTorch f16 (VLEM_GPU_CHECK_DTYPES="f32 f16
@@ -58,7 +59,9 @@
 #    (launch-overhead.log); per-op profiles (VLEM_PROFILE=1) of CLIP's batch of 32, dinov3,
 #    NARADIO B and L and SAM ViT-B in f32 and f16 (profile-*.log, the top steps in the summary),
 #    NARADIO L in f16 with the fused attention, and an nsys timeline of NARADIO L where nsys is
-#    installed.
+#    installed;
+# 7. the fused attention kernel's golden test under compute-sanitizer's memcheck and racecheck,
+#    where the machine has it.
 # Exit status: the number of failed steps (0: all that ran passed; skipped steps are not failures
 # but are counted in the last line).
 set -uo pipefail
@@ -75,7 +78,7 @@ failed=0
 skipped=0
 start=$SECONDS
 BUDGET=${VLEM_GPU_CHECK_BUDGET_S:-540}
-PARTS=${VLEM_GPU_CHECK_PARTS:-1 5 3 2 4 6}
+PARTS=${VLEM_GPU_CHECK_PARTS:-1 5 3 4 2 6 7}
 
 # The seconds a step may run: its own limit, cut to what the budget has left (5 s kept for the
 # hand-back). Fails when under 20 s are left: the step is then skipped (see `skip`).
@@ -104,6 +107,20 @@ step() {
     STEP_RC=$?
     STEP_S=$((SECONDS - t0))
     [ "$STEP_RC" = 0 ] || return 1
+}
+# `prepare NAME FILE COMMAND...`: makes what a part needs (random model weights) unless FILE is
+# there, as a step of its own (60 s), so that it counts against the budget and is skipped, with
+# the part, when the budget has no room. Returns 0 when FILE is there.
+prepare() {
+    local name=$1 file=$2
+    shift 2
+    [ -e "$file" ] && return 0
+    step "$name" 60 "$OUT/prepare-${name// /-}.log" "$@"
+    case $? in
+    0) [ -e "$file" ] && return 0 ;;
+    1) fail "$name" "$OUT/prepare-${name// /-}.log" ;;
+    esac
+    return 1
 }
 # A failed step in the summary: `fail NAME LOG [PATTERN]`, with its exit status (124: out of time),
 # its time and LOG's first three lines matching PATTERN (by default the error's own lines: a Rust
@@ -198,53 +215,6 @@ part_1() {
         1) fail "$t" "$log" '^test .* FAILED|panicked' ;;
         esac
     done
-    # The fused kernel has no twin on the GPU to hide behind: its memory accesses and its shared
-    # memory barriers (four warps share the K and V tiles; each warp's scores and probabilities
-    # pass between its lanes through shared memory) under NVIDIA's checkers, where installed (on
-    # the device tool's H100 it works; on its gVisor H200 it refuses the device), only the
-    # kernel's launches instrumented.
-    local sanitizer tool
-    sanitizer=$(command -v compute-sanitizer || ls /usr/local/cuda*/bin/compute-sanitizer 2>/dev/null | head -n 1)
-    if [ -z "$sanitizer" ]; then
-        say "   compute-sanitizer: not installed here"
-        return
-    fi
-    for tool in memcheck racecheck; do
-        log=$OUT/sanitizer-$tool.log
-        step "fused_attention under $tool" 120 "$log" env VLEM_TEST_DEVICE=cuda "$sanitizer" \
-            --tool "$tool" --error-exitcode 99 --kernel-name kns=fused_attention \
-            "$G/bin/tests/fused_attention" --test-threads 1 --exact \
-            fused_attention_matches_f32_attention_in_both_half_types
-        case $? in
-        0) say "   fused_attention under $tool: $(grep -E 'ERROR SUMMARY|RACECHECK SUMMARY' "$log" | tail -n 1) ($STEP_S s)" ;;
-        1)
-            if grep -q "Device not supported" "$log"; then
-                say "   compute-sanitizer: refuses this device (Device not supported)"
-                return
-            fi
-            fail "fused_attention under $tool" "$log" 'ERROR SUMMARY|RACECHECK SUMMARY|Invalid|hazard|panicked'
-            ;;
-        esac
-    done
-}
-
-# bench/models/side_by_side.py on the GPU for model ROW in DTYPE, its output in LOG, its JSON line
-# appended to JSONL and said; the extra environment after the four arguments.
-side_by_side() {
-    local row=$1 dtype=$2 log=$3 jsonl=$4 line name
-    shift 4
-    name="$row $dtype${*:+ ($*)}"
-    step "$name" 150 "$log" env PYTHON=python3 "$@" python3 -W ignore \
-        bench/models/side_by_side.py --device cuda --dtype "$dtype" --examples "$G/bin/examples" \
-        --threads 16 --repeat 5 "$row"
-    case $? in
-    0)
-        line=$(grep '^{' "$log" | tail -n 1)
-        echo "$line" >>"$jsonl"
-        say "   ${*:+$*: }$line"
-        ;;
-    1) fail "$name" "$log" ;;
-    esac
 }
 
 part_2() {
@@ -304,7 +274,7 @@ PY
             log=$OUT/sam-batches-$v-$dtype.log
             step "sam $v $dtype batches" 120 "$log" env VLEM_BENCH_DEVICE=cuda \
                 VLEM_BENCH_DTYPE="$dtype" "$G/bin/examples/sam_bench" --variant "$v" \
-                --points-per-side 16 --refine off,on --points-per-batch 32,64,256
+                --points-per-side 16 --refine off,on --points-per-batch 32,64,256 --repeat 3
             case $? in
             0)
                 say "   sam $v $dtype by points_per_batch:"
@@ -338,12 +308,14 @@ print(json.dumps({
 PY
 }
 
-# `vlem run` of CONFIG on the shared sequence into OUT/NAME, its line in the summary.
+# `vlem run` of CONFIG on the shared sequence into OUT/NAME, its line in the summary. Without the
+# tracker's coloured mesh, which `frame-to-model` would write after stats.json: the step's time,
+# not the run's.
 e2e_run() {
     local name=$1 config=$2
     shift 2
     step "$name" 180 "$OUT/$name.log" "$G/bin/vlem" run --config "$config" \
-        --dataset "$G/data/icl-livingroom1" --out "$OUT/$name" "$@"
+        --dataset "$G/data/icl-livingroom1" --out "$OUT/$name" --no-colour-model "$@"
     case $? in
     0) e2e_line "$OUT/$name/stats.json" | tee "$OUT/$name.json" | sed 's/^/     /' | tee -a "$SUMMARY" ;;
     1) fail "$name" "$OUT/$name.log" ;;
@@ -353,7 +325,8 @@ e2e_run() {
 part_3() {
     say "== 3. end to end: the shared sequence, graph regions + CLIP ViT-B/16 on the GPU ($(elapsed))"
     local model=/tmp/clip-vit-b16-random mode run
-    [ -f "$model/model.safetensors" ] || python3 bench/clip/make_random_b16.py "$model" >/dev/null
+    prepare "random CLIP weights" "$model/model.safetensors" \
+        python3 bench/clip/make_random_b16.py "$model" || return
     # The real-time run as committed, then the same stages offline (every frame embedded).
     sed "s|^model_dir = .*|model_dir = \"$model\"|" configs/realtime-cuda-clip.toml \
         >"$OUT/realtime-cuda-clip.toml"
@@ -375,26 +348,29 @@ part_3() {
 part_4() {
     say "== 4. end to end: NARADIO B/16 at 640x480, and SAM ViT-B + refinement + CLIP, on the GPU, frame-to-model poses ($(elapsed))"
     local model=/tmp/naradio-b-random
-    [ -f "$model/config.json" ] || python3 bench/naradio/make_random.py --size b "$model" >/dev/null
+    prepare "random NARADIO B weights" "$model/config.json" \
+        python3 bench/naradio/make_random.py --size b "$model" || return
     sed "s|^model_dir = .*|model_dir = \"$model\"|" configs/realtime-cuda-naradio.toml \
         >"$OUT/realtime-cuda-naradio.toml"
     say "   realtime-naradio:"
-    e2e_run e2e-naradio "$OUT/realtime-cuda-naradio.toml" --no-colour-model
+    e2e_run e2e-naradio "$OUT/realtime-cuda-naradio.toml"
     # The paper's best configuration: SAM ViT-B on vlem's synthetic weights (sam_bench writes
     # them in the checkpoint's layout), CLIP on random ones. Such a SAM predicts low IoUs, so few
     # masks pass the thresholds and CLIP has little to embed; the second run sets both thresholds
     # to 0, so every mask box NMS keeps is a region CLIP embeds.
     local sam=/tmp/sam-vit-b-synthetic.safetensors clip=/tmp/clip-vit-b16-random
-    [ -f "$sam" ] || "$G/bin/examples/sam_bench" --variant vit-b --write-weights "$sam" >/dev/null
-    [ -f "$clip/model.safetensors" ] || python3 bench/clip/make_random_b16.py "$clip" >/dev/null
+    prepare "synthetic SAM ViT-B weights" "$sam" \
+        "$G/bin/examples/sam_bench" --variant vit-b --write-weights "$sam" || return
+    prepare "random CLIP weights" "$clip/model.safetensors" \
+        python3 bench/clip/make_random_b16.py "$clip" || return
     sed -e "s|^weights = .*|weights = \"$sam\"|" -e "s|^model_dir = .*|model_dir = \"$clip\"|" \
         configs/realtime-cuda-sam-clip.toml >"$OUT/realtime-cuda-sam-clip.toml"
     sed '/^kind = "sam"/a pred_iou_thresh = 0.0\nstability_score_thresh = 0.0' \
         "$OUT/realtime-cuda-sam-clip.toml" >"$OUT/realtime-open-cuda-sam-clip.toml"
     say "   realtime-sam-clip:"
-    e2e_run e2e-sam-clip "$OUT/realtime-cuda-sam-clip.toml" --no-colour-model
+    e2e_run e2e-sam-clip "$OUT/realtime-cuda-sam-clip.toml"
     say "   realtime-sam-clip, thresholds 0 (every mask NMS keeps is embedded):"
-    e2e_run e2e-sam-clip-open "$OUT/realtime-open-cuda-sam-clip.toml" --no-colour-model
+    e2e_run e2e-sam-clip-open "$OUT/realtime-open-cuda-sam-clip.toml"
 }
 
 part_5() {
@@ -410,7 +386,8 @@ part_5() {
 part_6() {
     say "== 6. per-op profiles (VLEM_PROFILE=1: the device synchronised around each step) ($(elapsed))"
     local model=/tmp/clip-vit-b16-random dtype run name fused command log
-    [ -f "$model/model.safetensors" ] || python3 bench/clip/make_random_b16.py "$model" >/dev/null
+    prepare "random CLIP weights" "$model/model.safetensors" \
+        python3 bench/clip/make_random_b16.py "$model" || return
     # Launch overhead (issue 38 part 4), where the work is small: one crop and one text, vlem as
     # it runs and with its per-op timers, PyTorch eager and as a CUDA graph's replay.
     say "   launch overhead, one crop and one text (vlem plain, vlem profiled, PyTorch eager and graph):"
@@ -467,10 +444,61 @@ part_6() {
     fi
 }
 
+part_7() {
+    say "== 7. the fused attention kernel under compute-sanitizer ($(elapsed))"
+    # The fused kernel has no twin on the GPU to hide behind: its memory accesses and its shared
+    # memory barriers (four warps share the K and V tiles; each warp's scores and probabilities
+    # pass between its lanes through shared memory) under NVIDIA's checkers, where installed (on
+    # the device tool's H100 it works; on its gVisor H200 it refuses the device), only the
+    # kernel's launches instrumented.
+    local sanitizer tool log
+    sanitizer=$(command -v compute-sanitizer || ls /usr/local/cuda*/bin/compute-sanitizer 2>/dev/null | head -n 1)
+    if [ -z "$sanitizer" ]; then
+        say "   compute-sanitizer: not installed here"
+        return
+    fi
+    for tool in memcheck racecheck; do
+        log=$OUT/sanitizer-$tool.log
+        step "fused_attention under $tool" 120 "$log" env VLEM_TEST_DEVICE=cuda "$sanitizer" \
+            --tool "$tool" --error-exitcode 99 --kernel-name kns=fused_attention \
+            "$G/bin/tests/fused_attention" --test-threads 1 --exact \
+            fused_attention_matches_f32_attention_in_both_half_types
+        case $? in
+        0) say "   fused_attention under $tool: $(grep -E 'ERROR SUMMARY|RACECHECK SUMMARY' "$log" | tail -n 1) ($STEP_S s)" ;;
+        1)
+            if grep -q "Device not supported" "$log"; then
+                say "   compute-sanitizer: refuses this device (Device not supported)"
+                return
+            fi
+            fail "fused_attention under $tool" "$log" 'ERROR SUMMARY|RACECHECK SUMMARY|Invalid|hazard|panicked'
+            ;;
+        esac
+    done
+}
+
+# bench/models/side_by_side.py on the GPU for model ROW in DTYPE, its output in LOG, its JSON line
+# appended to JSONL and said; the extra environment after the four arguments.
+side_by_side() {
+    local row=$1 dtype=$2 log=$3 jsonl=$4 line name
+    shift 4
+    name="$row $dtype${*:+ ($*)}"
+    step "$name" 150 "$log" env PYTHON=python3 "$@" python3 -W ignore \
+        bench/models/side_by_side.py --device cuda --dtype "$dtype" --examples "$G/bin/examples" \
+        --threads 16 --repeat 5 "$row"
+    case $? in
+    0)
+        line=$(grep '^{' "$log" | tail -n 1)
+        echo "$line" >>"$jsonl"
+        say "   ${*:+$*: }$line"
+        ;;
+    1) fail "$name" "$log" ;;
+    esac
+}
+
 for part in $PARTS; do
     case $part in
-    1 | 2 | 3 | 4 | 5 | 6) "part_$part" ;;
-    *) say "== no part $part (1 to 6)" ;;
+    1 | 2 | 3 | 4 | 5 | 6 | 7) "part_$part" ;;
+    *) say "== no part $part (1 to 7)" ;;
     esac
     hand_back
 done
