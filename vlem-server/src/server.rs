@@ -28,7 +28,7 @@ use std::thread::JoinHandle;
 use std::time::{Duration, Instant};
 
 use serde::Serialize;
-use vlem_core::BuildContext;
+use vlem_core::{BuildContext, message_chain};
 use vlem_core::live::LiveMap;
 use vlem_query::QueryError;
 use vlem_query::answer::{AnswerOptions, Selection, answer_live};
@@ -668,7 +668,7 @@ impl Handler {
         };
         let segmenter = match selection.build(&self.options.ctx) {
             Ok(s) => s,
-            Err(e) => return Reply::error(400, e.to_string()),
+            Err(e) => return Reply::error(400, message_chain(&e)),
         };
         let options = AnswerOptions {
             grasp: request.grasp.then(GraspParams::default),
@@ -698,7 +698,7 @@ impl Handler {
             .any(|(k, v)| k == "grasp" && v != "0" && v != "false");
         let segmenter = match Selection::threshold().build(&self.options.ctx) {
             Ok(s) => s,
-            Err(e) => return Reply::error(500, e.to_string()),
+            Err(e) => return Reply::error(500, message_chain(&e)),
         };
         let options = AnswerOptions {
             grasp: grasp.then(GraspParams::default),
@@ -814,7 +814,7 @@ impl Handler {
                 },
             ),
             Err(vlem_core::CoreError::MissingStage { message }) => Reply::error(409, message),
-            Err(e) => Reply::error(500, e.to_string()),
+            Err(e) => Reply::error(500, message_chain(&e)),
         }
     }
 
@@ -829,11 +829,11 @@ impl Handler {
             Err(vlem_core::CoreError::MissingStage { message }) => {
                 return Reply::error(409, message);
             }
-            Err(e) => return Reply::error(500, e.to_string()),
+            Err(e) => return Reply::error(500, message_chain(&e)),
         };
         match stream_map_file(snapshot, slot) {
             Ok(body) => Reply::binary(body, "map.vlem".into()),
-            Err(e) => Reply::error(500, e.to_string()),
+            Err(e) => Reply::error(500, message_chain(&e)),
         }
     }
 }
@@ -889,7 +889,7 @@ fn query_error(e: &QueryError) -> Reply {
         QueryError::Core(vlem_core::CoreError::MissingStage { .. }) => 409,
         _ => 500,
     };
-    Reply::error(status, e.to_string())
+    Reply::error(status, message_chain(e))
 }
 
 /// `a=1&b=two+words` → pairs, percent-decoded.
