@@ -117,7 +117,11 @@ prepare() {
     [ -e "$file" ] && return 0
     step "$name" 60 "$OUT/prepare-${name// /-}.log" "$@"
     case $? in
-    0) [ -e "$file" ] && return 0 ;;
+    0)
+        [ -e "$file" ] && return 0
+        say "   $name: FAILED, it made no $file"
+        failed=$((failed + 1))
+        ;;
     1) fail "$name" "$OUT/prepare-${name// /-}.log" ;;
     esac
     return 1
@@ -215,6 +219,25 @@ part_1() {
         1) fail "$t" "$log" '^test .* FAILED|panicked' ;;
         esac
     done
+}
+
+# bench/models/side_by_side.py on the GPU for model ROW in DTYPE, its output in LOG, its JSON line
+# appended to JSONL and said; the extra environment after the four arguments.
+side_by_side() {
+    local row=$1 dtype=$2 log=$3 jsonl=$4 line name
+    shift 4
+    name="$row $dtype${*:+ ($*)}"
+    step "$name" 150 "$log" env PYTHON=python3 "$@" python3 -W ignore \
+        bench/models/side_by_side.py --device cuda --dtype "$dtype" --examples "$G/bin/examples" \
+        --threads 16 --repeat 5 "$row"
+    case $? in
+    0)
+        line=$(grep '^{' "$log" | tail -n 1)
+        echo "$line" >>"$jsonl"
+        say "   ${*:+$*: }$line"
+        ;;
+    1) fail "$name" "$log" ;;
+    esac
 }
 
 part_2() {
@@ -474,25 +497,6 @@ part_7() {
             ;;
         esac
     done
-}
-
-# bench/models/side_by_side.py on the GPU for model ROW in DTYPE, its output in LOG, its JSON line
-# appended to JSONL and said; the extra environment after the four arguments.
-side_by_side() {
-    local row=$1 dtype=$2 log=$3 jsonl=$4 line name
-    shift 4
-    name="$row $dtype${*:+ ($*)}"
-    step "$name" 150 "$log" env PYTHON=python3 "$@" python3 -W ignore \
-        bench/models/side_by_side.py --device cuda --dtype "$dtype" --examples "$G/bin/examples" \
-        --threads 16 --repeat 5 "$row"
-    case $? in
-    0)
-        line=$(grep '^{' "$log" | tail -n 1)
-        echo "$line" >>"$jsonl"
-        say "   ${*:+$*: }$line"
-        ;;
-    1) fail "$name" "$log" ;;
-    esac
 }
 
 for part in $PARTS; do
