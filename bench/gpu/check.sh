@@ -109,8 +109,10 @@ step() {
     [ "$STEP_RC" = 0 ] || return 1
 }
 # `prepare NAME FILE COMMAND...`: makes what a part needs (random model weights) unless FILE is
-# there, as a step of its own (60 s), so that it counts against the budget and is skipped, with
-# the part, when the budget has no room. Returns 0 when FILE is there.
+# there, as a step of its own (60 s), so that it counts against the budget. Returns 0 when FILE is
+# there, 2 when the budget had no room (the part then ends: its steps would be skipped too), 1 when
+# the command failed (said; the part goes on, and its steps say what they miss: a rehearsal
+# without PyTorch still starts them).
 prepare() {
     local name=$1 file=$2
     shift 2
@@ -123,6 +125,7 @@ prepare() {
         failed=$((failed + 1))
         ;;
     1) fail "$name" "$OUT/prepare-${name// /-}.log" ;;
+    2) return 2 ;;
     esac
     return 1
 }
@@ -349,7 +352,8 @@ part_3() {
     say "== 3. end to end: the shared sequence, graph regions + CLIP ViT-B/16 on the GPU ($(elapsed))"
     local model=/tmp/clip-vit-b16-random mode run
     prepare "random CLIP weights" "$model/model.safetensors" \
-        python3 bench/clip/make_random_b16.py "$model" || return
+        python3 bench/clip/make_random_b16.py "$model"
+    [ $? -ne 2 ] || return
     # The real-time run as committed, then the same stages offline (every frame embedded).
     sed "s|^model_dir = .*|model_dir = \"$model\"|" configs/realtime-cuda-clip.toml \
         >"$OUT/realtime-cuda-clip.toml"
@@ -372,7 +376,8 @@ part_4() {
     say "== 4. end to end: NARADIO B/16 at 640x480, and SAM ViT-B + refinement + CLIP, on the GPU, frame-to-model poses ($(elapsed))"
     local model=/tmp/naradio-b-random
     prepare "random NARADIO B weights" "$model/config.json" \
-        python3 bench/naradio/make_random.py --size b "$model" || return
+        python3 bench/naradio/make_random.py --size b "$model"
+    [ $? -ne 2 ] || return
     sed "s|^model_dir = .*|model_dir = \"$model\"|" configs/realtime-cuda-naradio.toml \
         >"$OUT/realtime-cuda-naradio.toml"
     say "   realtime-naradio:"
@@ -383,9 +388,11 @@ part_4() {
     # to 0, so every mask box NMS keeps is a region CLIP embeds.
     local sam=/tmp/sam-vit-b-synthetic.safetensors clip=/tmp/clip-vit-b16-random
     prepare "synthetic SAM ViT-B weights" "$sam" \
-        "$G/bin/examples/sam_bench" --variant vit-b --write-weights "$sam" || return
+        "$G/bin/examples/sam_bench" --variant vit-b --write-weights "$sam"
+    [ $? -ne 2 ] || return
     prepare "random CLIP weights" "$clip/model.safetensors" \
-        python3 bench/clip/make_random_b16.py "$clip" || return
+        python3 bench/clip/make_random_b16.py "$clip"
+    [ $? -ne 2 ] || return
     sed -e "s|^weights = .*|weights = \"$sam\"|" -e "s|^model_dir = .*|model_dir = \"$clip\"|" \
         configs/realtime-cuda-sam-clip.toml >"$OUT/realtime-cuda-sam-clip.toml"
     sed '/^kind = "sam"/a pred_iou_thresh = 0.0\nstability_score_thresh = 0.0' \
@@ -410,7 +417,8 @@ part_6() {
     say "== 6. per-op profiles (VLEM_PROFILE=1: the device synchronised around each step) ($(elapsed))"
     local model=/tmp/clip-vit-b16-random dtype run name fused command log
     prepare "random CLIP weights" "$model/model.safetensors" \
-        python3 bench/clip/make_random_b16.py "$model" || return
+        python3 bench/clip/make_random_b16.py "$model"
+    [ $? -ne 2 ] || return
     # Launch overhead (issue 38 part 4), where the work is small: one crop and one text, vlem as
     # it runs and with its per-op timers, PyTorch eager and as a CUDA graph's replay.
     say "   launch overhead, one crop and one text (vlem plain, vlem profiled, PyTorch eager and graph):"
