@@ -28,8 +28,8 @@ use std::thread::JoinHandle;
 use std::time::{Duration, Instant};
 
 use serde::Serialize;
-use vlem_core::{BuildContext, message_chain};
 use vlem_core::live::LiveMap;
+use vlem_core::{BuildContext, message_chain};
 use vlem_query::QueryError;
 use vlem_query::answer::{AnswerOptions, Selection, answer_live};
 use vlem_query::grasp::GraspParams;
