@@ -312,8 +312,9 @@ PY
     done
 }
 
-# One run's stats.json in a line: the frame counts, the embedding rate, the stages' means, busy
-# times and waits, the peak device memory and the map's device bytes.
+# One run's stats.json in a line: the frame counts, the embedding and tracking rates (frames over
+# the run's wall time; in real time a tracker that keeps up tracks all of them), the stages' means,
+# busy times and waits, the peak device memory and the map's device bytes.
 e2e_line() {
     python3 - "$1" <<'PY'
 import json, sys
@@ -323,7 +324,8 @@ load = s.get("stage_load", {})
 print(json.dumps({
     "frames": f["total"], "tracked": f.get("tracked"), "embedded": f["processed"],
     "skipped": f["skipped"], "lost": f["lost"], "wall_s": round(wall, 2),
-    "embedding_rate_fps": round(f["processed"] / wall, 2), "stages": s.get("stages"),
+    "embedding_rate_fps": round(f["processed"] / wall, 2),
+    "tracking_rate_fps": round((f.get("tracked") or 0) / wall, 2), "stages": s.get("stages"),
     "mean_ms": {k: round(v, 1) for k, v in s["mean_ms"].items()},
     "busy_ms": {k: round(v["busy"]["total_ms"]) for k, v in load.items()},
     "wait_in_ms": {k: round(v["wait_input_ms"]) for k, v in load.items()},
