@@ -129,6 +129,12 @@ prepare() {
     esac
     return 1
 }
+# The random CLIP ViT-B/16 of parts 3, 4 and 6, made once (see `prepare`).
+CLIP_MODEL=/tmp/clip-vit-b16-random
+prepare_clip() {
+    prepare "random CLIP weights" "$CLIP_MODEL/model.safetensors" \
+        python3 bench/clip/make_random_b16.py "$CLIP_MODEL"
+}
 # A failed step in the summary: `fail NAME LOG [PATTERN]`, with its exit status (124: out of time),
 # its time and LOG's first three lines matching PATTERN (by default the error's own lines: a Rust
 # error or panic, a Python exception, since with RUST_BACKTRACE set a binary's last lines are the
@@ -352,9 +358,8 @@ e2e_run() {
 
 part_3() {
     say "== 3. end to end: the shared sequence, graph regions + CLIP ViT-B/16 on the GPU ($(elapsed))"
-    local model=/tmp/clip-vit-b16-random mode run
-    prepare "random CLIP weights" "$model/model.safetensors" \
-        python3 bench/clip/make_random_b16.py "$model"
+    local model=$CLIP_MODEL mode run
+    prepare_clip
     [ $? -ne 2 ] || return
     # The real-time run as committed, then the same stages offline (every frame embedded).
     sed "s|^model_dir = .*|model_dir = \"$model\"|" configs/realtime-cuda-clip.toml \
@@ -388,12 +393,11 @@ part_4() {
     # them in the checkpoint's layout), CLIP on random ones. Such a SAM predicts low IoUs, so few
     # masks pass the thresholds and CLIP has little to embed; the second run sets both thresholds
     # to 0, so every mask box NMS keeps is a region CLIP embeds.
-    local sam=/tmp/sam-vit-b-synthetic.safetensors clip=/tmp/clip-vit-b16-random
+    local sam=/tmp/sam-vit-b-synthetic.safetensors clip=$CLIP_MODEL
     prepare "synthetic SAM ViT-B weights" "$sam" \
         "$G/bin/examples/sam_bench" --variant vit-b --write-weights "$sam"
     [ $? -ne 2 ] || return
-    prepare "random CLIP weights" "$clip/model.safetensors" \
-        python3 bench/clip/make_random_b16.py "$clip"
+    prepare_clip
     [ $? -ne 2 ] || return
     sed -e "s|^weights = .*|weights = \"$sam\"|" -e "s|^model_dir = .*|model_dir = \"$clip\"|" \
         configs/realtime-cuda-sam-clip.toml >"$OUT/realtime-cuda-sam-clip.toml"
@@ -417,9 +421,8 @@ part_5() {
 
 part_6() {
     say "== 6. per-op profiles (VLEM_PROFILE=1: the device synchronised around each step) ($(elapsed))"
-    local model=/tmp/clip-vit-b16-random dtype run name fused command log
-    prepare "random CLIP weights" "$model/model.safetensors" \
-        python3 bench/clip/make_random_b16.py "$model"
+    local model=$CLIP_MODEL dtype run name fused command log
+    prepare_clip
     [ $? -ne 2 ] || return
     # Launch overhead (issue 38 part 4), where the work is small: one crop and one text, vlem as
     # it runs and with its per-op timers, PyTorch eager and as a CUDA graph's replay.
