@@ -12,10 +12,14 @@
 //! through f32, as PyTorch accumulates) and are candle's own ops on every other device (so model
 //! code stays device-generic).
 //!
+//! The element-wise loops are written once, in plain Rust, and built twice: for baseline x86-64
+//! and for AVX2 with FMA, picked at run time (module `wide`, bit-identical results).
+//!
 //! `unsafe` here (the workspace denies it elsewhere; the crate's only other place is the two
 //! `mallopt` calls of `allocator.rs`): [`matmul`] calls the `gemm` crate, candle's own CPU matrix
 //! product, whose entry point takes raw pointers and strides. The wrapper checks every length
-//! before the call, so the pointers always cover the matrices.
+//! before the call, so the pointers always cover the matrices. And `wide` calls the AVX2 build of
+//! a loop only after asking the CPU whether it has AVX2 and FMA.
 
 /// `out = lhs · rhs` for row-major `lhs` (`m × k`), `rhs` (`k × n`) and `out` (`m × n`), on the
 /// calling thread (callers parallelise over independent products).
@@ -112,6 +116,11 @@ pub fn erf(x: f32) -> f32 {
 
 /// PyTorch's exact GELU, `x/2 · (1 + erf(x/√2))`, in place.
 pub fn gelu_erf_in_place(xs: &mut [f32]) {
+    wide::gelu_erf_in_place(xs);
+}
+
+#[inline(always)]
+fn gelu_erf_plain(xs: &mut [f32]) {
     for x in xs {
         *x = 0.5 * *x * (1.0 + erf(*x * std::f32::consts::FRAC_1_SQRT_2));
     }
@@ -166,6 +175,11 @@ pub fn exp(x: f32) -> f32 {
 
 /// CLIP's quick GELU, `x · σ(1.702 x)`, in place.
 pub fn quick_gelu_in_place(xs: &mut [f32]) {
+    wide::quick_gelu_in_place(xs);
+}
+
+#[inline(always)]
+fn quick_gelu_plain(xs: &mut [f32]) {
     for x in xs {
         *x /= 1.0 + exp(-1.702 * *x);
     }
@@ -173,6 +187,11 @@ pub fn quick_gelu_in_place(xs: &mut [f32]) {
 
 /// Softmax of each run of `len` consecutive values, in place.
 pub fn softmax_runs(values: &mut [f32], len: usize) {
+    wide::softmax_runs(values, len);
+}
+
+#[inline(always)]
+fn softmax_runs_plain(values: &mut [f32], len: usize) {
     if len == 0 {
         return;
     }
@@ -191,6 +210,7 @@ pub fn softmax_runs(values: &mut [f32], len: usize) {
 
 /// The sum of `values` in eight interleaved partial sums, which vectorise (a single running sum
 /// is one dependent add per element).
+#[inline(always)]
 pub fn sum_lanes(values: &[f32]) -> f32 {
     let mut lanes = [0.0f32; 8];
     let chunks = values.chunks_exact(8);
@@ -204,6 +224,7 @@ pub fn sum_lanes(values: &[f32]) -> f32 {
 }
 
 /// The largest of `values` (`-∞` for none) in eight interleaved lanes, like [`sum_lanes`].
+#[inline(always)]
 pub fn max_lanes(values: &[f32]) -> f32 {
     let mut lanes = [f32::NEG_INFINITY; 8];
     let chunks = values.chunks_exact(8);
@@ -217,6 +238,56 @@ pub fn max_lanes(values: &[f32]) -> f32 {
         }
     }
     lanes.iter().fold(rest, |m, &v| m.max(v))
+}
+
+/// The loops above compiled a second time for AVX2 and FMA, chosen at run time where the CPU has
+/// them, else the plain build (the crate is built for baseline x86-64, whose SSE2 vectors hold
+/// four floats, not eight).
+///
+/// Why: on a CPU without AVX-512, where the matrix products are slowest relative to PyTorch
+/// (BENCHMARKS.md, "The same table on a CPU without AVX-512"), the softmax of NARADIO B/16's
+/// attention scores took ~65 of a layer's 159 ms of attention at one thread. The wide build runs
+/// the same operations in the same order on wider vectors (Rust never contracts `a * b + c` into
+/// an FMA on its own, and the sums and maxima keep their eight explicit lanes), so its results
+/// are the plain build's, bit for bit (the tests compare them).
+mod wide {
+    #[cfg(target_arch = "x86_64")]
+    pub(super) fn has_avx2() -> bool {
+        std::arch::is_x86_feature_detected!("avx2") && std::arch::is_x86_feature_detected!("fma")
+    }
+
+    /// One wide twin per loop: `$name` calls `$plain` compiled with AVX2 and FMA where the CPU
+    /// has both, the plain build elsewhere.
+    macro_rules! twin {
+        ($name:ident, $plain:path, ($($arg:ident: $ty:ty),*)) => {
+            pub(super) fn $name($($arg: $ty),*) {
+                #[cfg(target_arch = "x86_64")]
+                {
+                    #[target_feature(enable = "avx2,fma")]
+                    fn avx2($($arg: $ty),*) {
+                        $plain($($arg),*)
+                    }
+                    if has_avx2() {
+                        #[allow(
+                            unsafe_code,
+                            reason = "calling the AVX2 build of a loop, after checking that the \
+                                      CPU has AVX2 and FMA"
+                        )]
+                        // SAFETY: `has_avx2` checked the features `avx2` was compiled for.
+                        unsafe {
+                            avx2($($arg),*)
+                        };
+                        return;
+                    }
+                }
+                $plain($($arg),*)
+            }
+        };
+    }
+
+    twin!(gelu_erf_in_place, super::gelu_erf_plain, (xs: &mut [f32]));
+    twin!(quick_gelu_in_place, super::quick_gelu_plain, (xs: &mut [f32]));
+    twin!(softmax_runs, super::softmax_runs_plain, (values: &mut [f32], len: usize));
 }
 
 /// Elements per parallel task of the element-wise ops: large enough that a task's work dwarfs
@@ -409,6 +480,36 @@ mod tests {
         let want = candle_nn::ops::softmax_last_dim(&t.contiguous()?)?;
         assert!(max_diff(&softmax_last_dim(&t)?, &want)? < 1e-6);
         Ok(())
+    }
+
+    #[test]
+    fn the_wide_loops_give_the_plain_loops_bits() {
+        // Odd lengths (a remainder after the vectors), extremes that the clamps cut, and rows
+        // of several lengths for the softmax.
+        let values: Vec<f32> = (0..10_007)
+            .map(|i| ((i * 7919) % 20_011) as f32 * 0.0011 - 11.0)
+            .chain([0.0, -0.0, 1e30, -1e30, 88.5, -90.0, f32::MIN_POSITIVE])
+            .collect();
+        let bits = |v: &[f32]| v.iter().map(|x| x.to_bits()).collect::<Vec<u32>>();
+        let (mut wide, mut plain) = (values.clone(), values.clone());
+        gelu_erf_in_place(&mut wide);
+        gelu_erf_plain(&mut plain);
+        assert_eq!(bits(&wide), bits(&plain), "gelu");
+        let (mut wide, mut plain) = (values.clone(), values.clone());
+        quick_gelu_in_place(&mut wide);
+        quick_gelu_plain(&mut plain);
+        assert_eq!(bits(&wide), bits(&plain), "quick gelu");
+        for len in [1, 3, 8, 197, 1208, 10_014] {
+            let n = values.len() / len * len;
+            let (mut wide, mut plain) = (values[..n].to_vec(), values[..n].to_vec());
+            softmax_runs(&mut wide, len);
+            softmax_runs_plain(&mut plain, len);
+            assert_eq!(bits(&wide), bits(&plain), "softmax of runs of {len}");
+        }
+        #[cfg(target_arch = "x86_64")]
+        if !wide::has_avx2() {
+            eprintln!("this CPU has no AVX2 and FMA: both sides ran the plain loops");
+        }
     }
 
     #[test]
