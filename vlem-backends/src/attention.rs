@@ -8,12 +8,16 @@
 //! matters for speed, [`scaled_dot_product`], is one function: where a fused kernel for a device
 //! goes, tested against this plain version.
 //!
-//! The plain version computes the scores of at most [`MAX_SCORES`] values at a time (chunks of
-//! the batch × head dimension), which bounds the memory of global attention over large grids
-//! (SAM's 64 × 64 tokens) and leaves smaller inputs as one product.
+//! On the CPU, f32 attention runs in blocks of queries whose scores stay in cache
+//! ([`crate::cpu_attention`], every kind of [`Scores`]). Elsewhere (other devices, half
+//! precision without the fused kernel, a batch broadcast against another) the plain version
+//! computes the scores of at most [`MAX_SCORES`] values at a time (chunks of the batch × head
+//! dimension), which bounds the memory of global attention over large grids (SAM's 64 × 64
+//! tokens) and leaves smaller inputs as one product.
 
 use candle_core::{Result, Tensor};
 
+use crate::cpu_attention::Sizes;
 use crate::kernels::softmax_last_dim;
 use crate::profile;
 
@@ -235,9 +239,10 @@ impl<L: Project> Attention<L> {
 /// `softmax(q·kᵀ·scale + bias)·v` with the options of [`Scores`]: `q` `(batch, heads, queries,
 /// head_dim)`, `k` and `v` `(batch or 1, heads, keys, head_dim)`. With
 /// [`crate::fused_attention::enabled`], plain scores in half precision go through the fused
-/// kernel (on the CPU its twin); everything else through [`plain_scaled_dot_product`]: the scores are materialised,
-/// [`MAX_SCORES`] at a time over the batch × head dimension. A batch of 1 on either side
-/// broadcasts against the other (in one product).
+/// kernel (on the CPU its twin); f32 on the CPU through the blocked product of
+/// [`crate::cpu_attention`]; everything else through [`plain_scaled_dot_product`]: the scores
+/// are materialised, [`MAX_SCORES`] at a time over the batch × head dimension. A batch of 1 on
+/// either side broadcasts against the other (in one product).
 pub(crate) fn scaled_dot_product(
     q: &Tensor,
     k: &Tensor,
@@ -253,7 +258,153 @@ pub(crate) fn scaled_dot_product(
     {
         return crate::fused_attention::scaled_dot_product(q, k, v, scale);
     }
+    if let Some(out) = blocked_on_cpu(q, k, v, scale, scores)? {
+        return Ok(out);
+    }
     plain_scaled_dot_product(q, k, v, scale, scores)
+}
+
+/// [`plain_scaled_dot_product`] on the CPU in cache-sized blocks of queries
+/// ([`crate::cpu_attention`]): f32 tensors with the same batch on both sides and every kind of
+/// [`Scores`]. `None` where it does not apply (another device or dtype, a broadcast batch, a
+/// bias that does not broadcast as `(batch, heads, queries, keys)`): the caller then runs the
+/// plain product.
+fn blocked_on_cpu(
+    q: &Tensor,
+    k: &Tensor,
+    v: &Tensor,
+    scale: f64,
+    scores: Scores<'_>,
+) -> Result<Option<Tensor>> {
+    use crate::cpu_attention::{Terms, attend};
+    use candle_core::DType;
+
+    let f32_on_cpu = |t: &Tensor| t.device().is_cpu() && t.dtype() == DType::F32;
+    if !(f32_on_cpu(q) && f32_on_cpu(k) && f32_on_cpu(v)) {
+        return Ok(None);
+    }
+    let (batch, heads, _, head_dim) = q.dims4()?;
+    let (k_batch, k_heads, keys, k_dim) = k.dims4()?;
+    if (k_batch, k_heads, k_dim) != (batch, heads, head_dim)
+        || v.dims4()? != (batch, heads, keys, head_dim)
+    {
+        return Ok(None);
+    }
+    // NACLIP's key-key scores: the keys are the queries.
+    let q = match scores {
+        Scores::KeyKey { .. } => k,
+        _ => q,
+    };
+    let queries = q.dim(2)?;
+    let sizes = Sizes {
+        batch,
+        heads,
+        queries,
+        keys,
+        head_dim,
+    };
+    // The added terms as contiguous f32, with how they are laid out.
+    let bias = match scores {
+        Scores::Bias(bias) | Scores::KeyKey { prior: bias } => {
+            match bias_strides(bias.dims(), sizes) {
+                Some(strides) => Some((bias.to_dtype(DType::F32)?.contiguous()?, strides)),
+                None => return Ok(None),
+            }
+        }
+        _ => None,
+    };
+    let relative = match scores {
+        Scores::Relative {
+            grid,
+            table_h,
+            table_w,
+        } => {
+            if grid.0 * grid.1 != queries || queries != keys {
+                return Ok(None);
+            }
+            let q3 = q.reshape((batch * heads, queries, head_dim))?;
+            Some((grid, relative_positions(&q3, grid, table_h, table_w)?))
+        }
+        _ => None,
+    };
+
+    let (q, k, v) = (q.contiguous()?, k.contiguous()?, v.contiguous()?);
+    let (q_storage, q_layout) = q.storage_and_layout();
+    let (k_storage, k_layout) = k.storage_and_layout();
+    let (v_storage, v_layout) = v.storage_and_layout();
+    let inputs = (
+        f32_slice(&q_storage, q_layout)?,
+        f32_slice(&k_storage, k_layout)?,
+        f32_slice(&v_storage, v_layout)?,
+    );
+    let mut out = vec![0f32; batch * heads * queries * head_dim];
+    match (&bias, &relative) {
+        (Some((bias, (batch_stride, head_stride))), _) => {
+            let (storage, layout) = bias.storage_and_layout();
+            let terms = Terms::Bias {
+                data: f32_slice(&storage, layout)?,
+                batch_stride: *batch_stride,
+                head_stride: *head_stride,
+            };
+            attend(inputs, sizes, scale as f32, terms, &mut out);
+        }
+        (None, Some((grid, (rel_h, rel_w)))) => {
+            let (h_storage, h_layout) = rel_h.storage_and_layout();
+            let (w_storage, w_layout) = rel_w.storage_and_layout();
+            let terms = Terms::Relative {
+                grid: *grid,
+                rel_h: f32_slice(&h_storage, h_layout)?,
+                rel_w: f32_slice(&w_storage, w_layout)?,
+            };
+            attend(inputs, sizes, scale as f32, terms, &mut out);
+        }
+        (None, None) => attend(inputs, sizes, scale as f32, Terms::None, &mut out),
+    }
+    Ok(Some(Tensor::from_vec(
+        out,
+        (batch, heads, queries, head_dim),
+        q.device(),
+    )?))
+}
+
+/// The offsets between the `(queries × keys)` matrices of a bias of shape `dims` for successive
+/// batch entries and heads (0 where it broadcasts), or `None` where it does not broadcast as
+/// `(batch, heads, queries, keys)`.
+fn bias_strides(dims: &[usize], sizes: Sizes) -> Option<(usize, usize)> {
+    let matrix = sizes.queries * sizes.keys;
+    let (lead, last) = dims.split_at(dims.len().checked_sub(2)?);
+    if last != [sizes.queries, sizes.keys] || lead.len() > 2 {
+        return None;
+    }
+    let mut padded = [1usize; 2];
+    padded[2 - lead.len()..].copy_from_slice(lead);
+    let [b, h] = padded;
+    let head_stride = match h {
+        1 => 0,
+        h if h == sizes.heads => matrix,
+        _ => return None,
+    };
+    let batch_stride = match b {
+        1 => 0,
+        b if b == sizes.batch => h * matrix,
+        _ => return None,
+    };
+    Some((batch_stride, head_stride))
+}
+
+/// The values of a contiguous f32 CPU tensor's storage.
+fn f32_slice<'a>(
+    storage: &'a candle_core::Storage,
+    layout: &candle_core::Layout,
+) -> Result<&'a [f32]> {
+    match (storage, layout.contiguous_offsets()) {
+        (candle_core::Storage::Cpu(candle_core::CpuStorage::F32(values)), Some((start, end))) => {
+            Ok(&values[start..end])
+        }
+        _ => Err(candle_core::Error::Msg(
+            "blocked attention: expected a contiguous f32 CPU tensor".into(),
+        )),
+    }
 }
 
 /// [`scaled_dot_product`] without the fused kernel: the scores materialised, [`MAX_SCORES`] at a
@@ -529,6 +680,54 @@ mod tests {
             },
         )?;
         assert!(max_diff(&got, &expected) < 1e-5);
+        Ok(())
+    }
+
+    #[test]
+    fn the_blocked_product_is_the_plain_one_for_every_bias_layout() -> Result<()> {
+        let (q, k, v) = (
+            random((2, 3, 6, 4), 21),
+            random((2, 3, 9, 4), 22),
+            random((2, 3, 9, 4), 23),
+        );
+        let layouts: [&[usize]; 5] = [
+            &[6, 9],
+            &[3, 6, 9],
+            &[2, 1, 6, 9],
+            &[1, 3, 6, 9],
+            &[2, 3, 6, 9],
+        ];
+        for (seed, dims) in (24..).zip(layouts) {
+            let bias = random((1, 1, 1, dims.iter().product()), seed).reshape(dims)?;
+            let scores = Scores::Bias(&bias);
+            let plain = plain_scaled_dot_product(&q, &k, &v, 0.5, scores)?;
+            let Some(blocked) = blocked_on_cpu(&q, &k, &v, 0.5, scores)? else {
+                panic!("no blocked product for a bias of {dims:?}");
+            };
+            assert!(max_diff(&blocked, &plain) < 1e-6, "bias of {dims:?}");
+        }
+        // What does not broadcast as (batch, heads, queries, keys), another dtype, and a batch
+        // of one against two go to the plain product.
+        let sizes = Sizes {
+            batch: 2,
+            heads: 3,
+            queries: 6,
+            keys: 9,
+            head_dim: 4,
+        };
+        for dims in [
+            &[4, 6, 9][..],
+            &[9, 6],
+            &[3, 2, 6, 9],
+            &[1, 1, 1, 6, 9],
+            &[9],
+        ] {
+            assert_eq!(bias_strides(dims, sizes), None, "{dims:?}");
+        }
+        let half = q.to_dtype(candle_core::DType::F16)?;
+        assert!(blocked_on_cpu(&half, &half, &half, 0.5, Scores::Plain)?.is_none());
+        let one = q.narrow(0, 0, 1)?;
+        assert!(blocked_on_cpu(&one, &k, &v, 0.5, Scores::Plain)?.is_none());
         Ok(())
     }
 

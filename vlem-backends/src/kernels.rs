@@ -26,11 +26,36 @@
 ///
 /// # Panics
 /// When a slice is shorter than its matrix: a caller's size bug, never a user input.
+pub fn matmul(lhs: &[f32], rhs: &[f32], out: &mut [f32], (m, k, n): (usize, usize, usize)) {
+    product(lhs, (rhs, false), out, (m, k, n));
+}
+
+/// `out = lhs · rhsᵀ` for row-major `lhs` (`m × k`), `rhs` (`n × k`) and `out` (`m × n`), on the
+/// calling thread: queries against keys, the keys read in place (the product packs its operands
+/// anyway, so the transpose costs nothing).
+///
+/// # Panics
+/// As [`matmul`].
+pub fn matmul_by_transpose(
+    lhs: &[f32],
+    rhs: &[f32],
+    out: &mut [f32],
+    (m, k, n): (usize, usize, usize),
+) {
+    product(lhs, (rhs, true), out, (m, k, n));
+}
+
+/// [`matmul`], or [`matmul_by_transpose`] where `rhs.1`.
 #[allow(
     unsafe_code,
     reason = "the one call into gemm's raw-pointer API, after its length checks"
 )]
-pub fn matmul(lhs: &[f32], rhs: &[f32], out: &mut [f32], (m, k, n): (usize, usize, usize)) {
+fn product(
+    lhs: &[f32],
+    (rhs, transposed): (&[f32], bool),
+    out: &mut [f32],
+    (m, k, n): (usize, usize, usize),
+) {
     assert!(
         lhs.len() >= m * k && rhs.len() >= k * n && out.len() >= m * n,
         "matmul: slices of {}, {} and {} values for a {m}x{k} by {k}x{n} product",
@@ -46,11 +71,19 @@ pub fn matmul(lhs: &[f32], rhs: &[f32], out: &mut [f32], (m, k, n): (usize, usiz
         return;
     }
     let stride = |v: usize| isize::try_from(v).unwrap_or(isize::MAX);
+    // Element (row, column) of `rhs` as a `k × n` matrix: `row · n + column` in place, `column
+    // · k + row` when it holds the transpose.
+    let (rhs_column_stride, rhs_row_stride) = if transposed {
+        (stride(k), 1)
+    } else {
+        (1, stride(n))
+    };
     // SAFETY: the assert above makes `lhs`, `rhs` and `out` cover `m*k`, `k*n` and `m*n`
-    // elements, which is every offset `gemm` forms from these row-major strides (row stride the
-    // column count, column stride 1); `out` is a unique borrow, so it aliases neither input.
-    // `read_dst = false` means `out` is only written (alpha is ignored), `beta = 1` is the plain
-    // product, and the conjugation flags are no-ops for reals.
+    // elements, which is every offset `gemm` forms from these strides (a `k × n` matrix stored
+    // row-major or, transposed, as `n × k` row-major: the largest offset is `k*n - 1` either
+    // way); `out` is a unique borrow, so it aliases neither input. `read_dst = false` means
+    // `out` is only written (alpha is ignored), `beta = 1` is the plain product, and the
+    // conjugation flags are no-ops for reals.
     unsafe {
         gemm::gemm(
             m,
@@ -64,8 +97,8 @@ pub fn matmul(lhs: &[f32], rhs: &[f32], out: &mut [f32], (m, k, n): (usize, usiz
             1,
             stride(k),
             rhs.as_ptr(),
-            1,
-            stride(n),
+            rhs_column_stride,
+            rhs_row_stride,
             0.0,
             1.0,
             false,
@@ -154,8 +187,12 @@ pub fn exp(x: f32) -> f32 {
     const LN2_LO: f32 = -2.121_944_4e-4;
     // 1.5 · 2²³: adding and subtracting it rounds to the nearest integer.
     const ROUND: f32 = 12_582_912.0;
-    let x = x.clamp(-87.3, 88.0);
-    let n = (x * std::f32::consts::LOG2_E + ROUND) - ROUND;
+    // Compare-and-select rather than `clamp`: the same values, a NaN passes through as NaN, and
+    // each is one vector instruction (`clamp`'s and `max`'s NaN rules cost a compare and blend).
+    let x = if x < -87.3 { -87.3 } else { x };
+    let x = if x > 88.0 { 88.0 } else { x };
+    let rounded = x * std::f32::consts::LOG2_E + ROUND;
+    let n = rounded - ROUND;
     let r = (x - n * LN2_HI) - n * LN2_LO;
     let mut p = 1.0 / 5040.0;
     for c in [
@@ -169,8 +206,14 @@ pub fn exp(x: f32) -> f32 {
     ] {
         p = p * r + c;
     }
-    let scale = f32::from_bits(((n as i32 + 127) as u32) << 23);
-    p * scale
+    // 2ⁿ from `rounded`'s bits, where the integer `n` sits in the low mantissa bits (`rounded` =
+    // 1.5 · 2²³ + n, and 2²³ ≤ rounded < 2²⁴ has a spacing of 1): integer arithmetic on the
+    // bits instead of `n as i32`, whose saturating conversion does not vectorise well.
+    let biased = rounded
+        .to_bits()
+        .wrapping_sub(ROUND.to_bits())
+        .wrapping_add(127);
+    p * f32::from_bits(biased << 23)
 }
 
 /// CLIP's quick GELU, `x · σ(1.702 x)`, in place.

@@ -146,6 +146,15 @@ pub mod profile;
 )]
 pub(crate) mod attention;
 
+// Attention on the CPU in cache-sized blocks of queries.
+#[cfg(any(
+    feature = "clip",
+    feature = "dinov3",
+    feature = "naradio",
+    feature = "sam"
+))]
+mod cpu_attention;
+
 // Fused attention: one CUDA kernel for half-precision attention, its plain twin on the CPU.
 #[cfg(any(
     feature = "clip",
