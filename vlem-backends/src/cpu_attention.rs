@@ -1,15 +1,15 @@
-//! Attention on the CPU in blocks of queries whose scores stay in the core's cache.
+//! Attention on the CPU in blocks of queries whose scores stay in the caches.
 //!
 //! Why it exists: the attention layer's plain product materialises every head's scores, then
 //! passes over them again for the added terms, the softmax (three passes) and the product with
 //! the values. At NARADIO B/16's 1200 tokens that is 12 × 1200 × 1200 floats (69 MB) a layer,
-//! far beyond the caches, so those passes ran at memory speed: a layer's scores, softmax and mix
-//! took 167 ms at one thread on an AVX2 CPU, of which the two products are ~75 ms of arithmetic
-//! (BENCHMARKS.md, "Attention in cache-sized blocks"). Here each task takes one (batch, head)
-//! row and a block of its queries, small enough that the block's scores (at most
-//! [`BLOCK_SCORES`] floats) are written, completed, normalised and multiplied by the values
-//! while they are still in the core's L2 cache: the products stay the same matrix products, and
-//! the scores never go to memory.
+//! far beyond the caches; at one thread on an AVX2 CPU the step took 167 ms a layer, of which
+//! the two products are ~75 ms of arithmetic. Here each task takes one (batch, head) row and a
+//! block of its queries: the block's scores (at most [`BLOCK_SCORES`] floats, 1 MiB) are
+//! written, completed, normalised and multiplied by the values while they are in the core's
+//! caches (its L2 and the L3 beside it), never written to memory and read back. The products
+//! stay the same matrix products. With the faster `exp` that came with it, the step took ~97 ms
+//! a layer (BENCHMARKS.md, "Attention in cache-sized blocks on the CPU").
 //!
 //! Per score it runs the plain layer's operations in the plain layer's order: the query scaled,
 //! its dot product with the key, plus the added term (a bias, a prior, SAM's relative positions

@@ -498,6 +498,47 @@ mod tests {
         assert_eq!(exp(0.0), 1.0);
         assert!(exp(-1000.0) > 0.0 && exp(-1000.0) < 2e-38);
         assert!(exp(f32::NEG_INFINITY) < 2e-38 && exp(1000.0).is_finite());
+        assert!(exp(f32::NAN).is_nan());
+    }
+
+    #[test]
+    fn exp_gives_the_bits_of_its_clamp_and_cast_form() {
+        // The form `exp` had before its compare-and-select and its 2ⁿ from bits (both chosen
+        // for speed): the same value for every input.
+        fn clamp_and_cast(x: f32) -> f32 {
+            let x = x.clamp(-87.3, 88.0);
+            let n = (x * std::f32::consts::LOG2_E + 12_582_912.0) - 12_582_912.0;
+            let r = (x - n * 0.693_359_4) - n * -2.121_944_4e-4;
+            let mut p = 1.0 / 5040.0;
+            for c in [
+                1.0 / 720.0,
+                1.0 / 120.0,
+                1.0 / 24.0,
+                1.0 / 6.0,
+                0.5,
+                1.0,
+                1.0,
+            ] {
+                p = p * r + c;
+            }
+            p * f32::from_bits(((n as i32 + 127) as u32) << 23)
+        }
+        let edges = [
+            f32::NEG_INFINITY,
+            f32::INFINITY,
+            -1e30,
+            1e30,
+            -87.31,
+            -87.3,
+            87.99,
+            88.0,
+        ];
+        for x in (-1_000_000..1_000_000)
+            .map(|i| i as f32 * 1e-4)
+            .chain(edges)
+        {
+            assert_eq!(exp(x).to_bits(), clamp_and_cast(x).to_bits(), "{x}");
+        }
     }
 
     #[test]

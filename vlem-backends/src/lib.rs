@@ -109,7 +109,8 @@ pub mod sam;
     not(all(feature = "sam", feature = "clip")),
     allow(
         dead_code,
-        reason = "each backend uses a subset: `sam` the matrix product, `clip` the quick GELU"
+        reason = "each backend uses a subset: the attention and `sam` the matrix products, `clip` \
+                  the quick GELU"
     )
 )]
 pub(crate) mod kernels;
