@@ -380,7 +380,13 @@ fn serve_connection(shared: &Shared, stream: TcpStream) {
             }
         };
         let keep_alive = keep_alive && !shared.stop.load(Ordering::SeqCst);
-        if write_reply(&mut connection, reply, send_body, !keep_alive).is_err() || !keep_alive {
+        if write_reply(&mut connection, reply, send_body, !keep_alive).is_err() {
+            return;
+        }
+        if !keep_alive {
+            // The peer may still be sending (the rest of a refused head or body): a plain drop
+            // would reset the connection and could take the answer with it.
+            connection.close();
             return;
         }
     }
