@@ -21,9 +21,12 @@
 //!   end is signalled, then what the peer still sends (the rest of a refused head or body) is
 //!   read and dropped for up to [`Limits::linger`]. Closing a socket with unread bytes makes the
 //!   kernel reset the connection, and a reset can discard the answer at the peer before it is read.
+//!   Connections refused before they get a thread (the server's connection cap) are closed the
+//!   same way by one [`Closer`] thread for all of them, so the accept loop never waits on a peer.
 
 use std::io::{self, Read, Write};
 use std::net::TcpStream;
+use std::sync::mpsc::{self, Receiver, SyncSender, TryRecvError};
 use std::time::{Duration, Instant};
 
 /// Bounds on one connection's requests.
@@ -312,6 +315,103 @@ impl Connection {
         self.stream
             .set_write_timeout(Some(self.limits.write_stall))?;
         self.stream.write_all(bytes)
+    }
+}
+
+/// Closes connections that were refused without a thread of their own (the accept loop's 503 at
+/// the connection cap), each as [`Connection::close`] does: its side ended, then what the peer
+/// still sends read and dropped until the peer closes, [`Limits::linger`] passes or
+/// [`Limits::linger_bytes`] are dropped. One thread drains them all side by side with
+/// non-blocking reads, so the accept loop hands a connection over and goes on at once.
+///
+/// It holds at most [`Closer::HELD`] connections (file descriptors, in a flood of refusals):
+/// one handed over past that is closed at once, the plain close it would have had without the
+/// closer. The thread ends by itself once the closer is dropped and its last connection closed.
+pub(crate) struct Closer {
+    handover: SyncSender<TcpStream>,
+}
+
+impl Closer {
+    /// Connections draining plus waiting for the thread, at most.
+    pub(crate) const HELD: usize = 64;
+    /// How often the thread reads its connections again while any is open.
+    const POLL: Duration = Duration::from_millis(10);
+
+    /// Starts the closing thread.
+    pub(crate) fn start(limits: Limits) -> io::Result<Self> {
+        // Half wait in the hand-over, half drain: the thread takes a waiting one whenever a
+        // draining one ends.
+        let (handover, waiting) = mpsc::sync_channel(Self::HELD / 2);
+        std::thread::Builder::new()
+            .name("vlem-http-close".into())
+            .spawn(move || drain_refused(&waiting, limits, Self::HELD - Self::HELD / 2))?;
+        Ok(Self { handover })
+    }
+
+    /// Closes `stream`, whose answer has been written, without waiting for its peer.
+    pub(crate) fn close(&self, stream: TcpStream) {
+        let ended = stream.shutdown(std::net::Shutdown::Write).is_ok();
+        if ended && stream.set_nonblocking(true).is_ok() {
+            // Full (or the thread is gone): dropped here, closed at once.
+            let _ = self.handover.try_send(stream);
+        }
+    }
+}
+
+/// The closer thread: see [`Closer`].
+fn drain_refused(waiting: &Receiver<TcpStream>, limits: Limits, draining_at_most: usize) {
+    struct Draining {
+        stream: TcpStream,
+        deadline: Instant,
+        dropped: usize,
+    }
+    let mut draining: Vec<Draining> = Vec::new();
+    let mut handed_over = true;
+    let mut chunk = [0u8; 8192];
+    loop {
+        // Take what waits, while there is room; wait for one only when nothing drains.
+        while handed_over && draining.len() < draining_at_most {
+            let next = if draining.is_empty() {
+                waiting.recv().map_err(|_| TryRecvError::Disconnected)
+            } else {
+                waiting.try_recv()
+            };
+            match next {
+                Ok(stream) => draining.push(Draining {
+                    stream,
+                    deadline: Instant::now() + limits.linger,
+                    dropped: 0,
+                }),
+                Err(TryRecvError::Empty) => break,
+                Err(TryRecvError::Disconnected) => handed_over = false,
+            }
+        }
+        if draining.is_empty() {
+            return;
+        }
+        let now = Instant::now();
+        draining.retain_mut(|connection| {
+            loop {
+                match connection.stream.read(&mut chunk) {
+                    // The peer closed, or its socket failed: done.
+                    Ok(0) => return false,
+                    Err(e) if e.kind() == io::ErrorKind::Interrupted => {}
+                    Err(e) if e.kind() == io::ErrorKind::WouldBlock => {
+                        return now < connection.deadline;
+                    }
+                    Err(_) => return false,
+                    Ok(n) => {
+                        connection.dropped += n;
+                        if connection.dropped >= limits.linger_bytes {
+                            return false;
+                        }
+                    }
+                }
+            }
+        });
+        if !draining.is_empty() {
+            std::thread::sleep(Closer::POLL);
+        }
     }
 }
 
@@ -680,6 +780,63 @@ mod tests {
             assert!(answer.starts_with("HTTP/1.1 431 "), "{answer}");
             assert!(answer.ends_with("1024 bytes or 8 headers"), "{answer}");
         }
+    }
+
+    /// What clients read when the server answers them at once and hands their connections to a
+    /// [`Closer`] while each is still sending its request body: a failed send or the answer.
+    /// (Closing them at once instead, as the accept loop did, failed the send in 2 of 2 tries.)
+    /// `clients` past [`Closer::HELD`] are closed at once and may see a failed send.
+    fn refuse_through_the_closer(clients: usize) -> Vec<io::Result<Vec<u8>>> {
+        let closer = Closer::start(QUICK).unwrap();
+        let listener = TcpListener::bind("127.0.0.1:0").unwrap();
+        let address = listener.local_addr().unwrap();
+        let mut readers = Vec::new();
+        for _ in 0..clients {
+            let mut client = TcpStream::connect(address).unwrap();
+            // The request's head is in the server's socket before the answer, as at a full
+            // server; its body is still coming when the connection is handed over.
+            client
+                .write_all(b"POST / HTTP/1.1\r\nContent-Length: 262144\r\n\r\n")
+                .unwrap();
+            let mut sender = client.try_clone().unwrap();
+            let sending = std::thread::spawn(move || {
+                sender.write_all(&vec![b'a'; 1 << 18])?;
+                sender.shutdown(std::net::Shutdown::Write)
+            });
+            let (mut server, _) = listener.accept().unwrap();
+            server.peek(&mut [0u8; 1]).unwrap();
+            server
+                .write_all(b"HTTP/1.1 503 Service Unavailable\r\n\r\nbusy")
+                .unwrap();
+            let handed_over = Instant::now();
+            closer.close(server);
+            assert!(
+                handed_over.elapsed() < Duration::from_millis(100),
+                "close waits for no peer"
+            );
+            readers.push(std::thread::spawn(move || {
+                // A client that sends its whole request before it reads (curl, Python's
+                // requests) reports a failed send, not the answer.
+                sending.join().unwrap()?;
+                let mut answer = Vec::new();
+                client.read_to_end(&mut answer).map(|_| answer)
+            }));
+        }
+        readers.into_iter().map(|r| r.join().unwrap()).collect()
+    }
+
+    #[test]
+    fn the_closer_keeps_refused_answers_while_their_peers_are_still_sending() {
+        for answer in refuse_through_the_closer(Closer::HELD / 2) {
+            assert_eq!(
+                String::from_utf8_lossy(&answer.unwrap()),
+                "HTTP/1.1 503 Service Unavailable\r\n\r\nbusy"
+            );
+        }
+        // In a flood past what it holds, the rest are closed at once, and close still returns
+        // at once (checked inside).
+        let answers = refuse_through_the_closer(Closer::HELD * 2);
+        assert_eq!(answers.len(), Closer::HELD * 2);
     }
 
     #[test]

@@ -5,7 +5,8 @@
 //! threads fit better than an async runtime; what makes it safe to leave running beside a
 //! mapping run for hours is that every resource is bounded:
 //! - connections: at most [`MAX_CONNECTIONS`]; one more is answered 503 by the accept loop itself,
-//!   which never exits on an error (a full file table only pauses it);
+//!   which never exits on an error (a full file table only pauses it) and never waits on a
+//!   refused client (one thread closes those, [`crate::http::Closer`]);
 //! - each connection's reads and writes: sizes and timeouts in [`crate::http`];
 //! - the map work: at most [`WORK_SLOTS`] queries, heatmaps and snapshots at once (more wait up to
 //!   [`WORK_WAIT`], then 503), and at most [`DOWNLOADS`] map downloads at once, each holding one
@@ -38,7 +39,7 @@ use vlem_query::heatmap::{gripper_vertices, heatmap_ply};
 use crate::api::{ErrorReply, MapStatus, QueryRequest, SnapshotSaved, Status};
 use crate::error::ServerError;
 use crate::guard::{Access, RequestHead, validate_token};
-use crate::http::{Connection, Head, Limits, ReadError};
+use crate::http::{Closer, Connection, Head, Limits, ReadError};
 
 /// Open connections; one more is answered 503. Each costs a thread and at most a few tens of KiB
 /// of buffers, so the cap keeps a flood of idle connections (which once exhausted the threads of
@@ -197,11 +198,12 @@ impl QueryServer {
             closed: Condvar::new(),
             next_id: AtomicU64::new(0),
         });
+        let closer = Closer::start(Limits::SERVER).map_err(listen_error)?;
         let accept = std::thread::Builder::new()
             .name("vlem-http-accept".into())
             .spawn({
                 let shared = shared.clone();
-                move || accept_loop(&listener, &shared)
+                move || accept_loop(&listener, &shared, &closer)
             })
             .map_err(listen_error)?;
         Ok(Self {
@@ -298,8 +300,8 @@ fn lock<T>(mutex: &Mutex<T>) -> MutexGuard<'_, T> {
 
 /// Accepts connections until the server stops. Nothing ends it early: a failed accept (a full
 /// file table) pauses it briefly, and a connection it cannot take (the cap, or no thread) is
-/// answered 503 and closed.
-fn accept_loop(listener: &TcpListener, shared: &Arc<Shared>) {
+/// answered 503 and handed to `closer`.
+fn accept_loop(listener: &TcpListener, shared: &Arc<Shared>, closer: &Closer) {
     loop {
         let accepted = listener.accept();
         if shared.stop.load(Ordering::SeqCst) {
@@ -315,6 +317,7 @@ fn accept_loop(listener: &TcpListener, shared: &Arc<Shared>) {
             if open.len() >= MAX_CONNECTIONS {
                 drop(open);
                 refuse_busy(
+                    closer,
                     stream,
                     &format!(
                         "the server has {MAX_CONNECTIONS} open connections, its limit; close idle \
@@ -341,6 +344,7 @@ fn accept_loop(listener: &TcpListener, shared: &Arc<Shared>) {
             && let Some(stream) = lock(&shared.open).remove(&id)
         {
             refuse_busy(
+                closer,
                 stream,
                 "the server cannot start a thread for this connection",
             );
@@ -348,8 +352,10 @@ fn accept_loop(listener: &TcpListener, shared: &Arc<Shared>) {
     }
 }
 
-/// Answers 503 on a connection that will not be served, without waiting for the client.
-fn refuse_busy(stream: TcpStream, message: &str) {
+/// Answers 503 on a connection that will not be served, without waiting for the client: the
+/// answer fits the empty socket's send buffer, and `closer` closes the connection without losing
+/// it (the client may have sent its request already).
+fn refuse_busy(closer: &Closer, stream: TcpStream, message: &str) {
     let body = error_body(message);
     let answer = format!(
         "HTTP/1.1 503 Service Unavailable\r\nContent-Type: application/json\r\nRetry-After: 1\r\n\
@@ -360,8 +366,8 @@ fn refuse_busy(stream: TcpStream, message: &str) {
     if stream.set_nonblocking(true).is_ok() {
         let _ = stream.write_all(answer.as_bytes());
         let _ = stream.write_all(&body);
+        closer.close(stream);
     }
-    let _ = stream.shutdown(std::net::Shutdown::Write);
 }
 
 /// One connection's requests, in turn, until it closes, fails, or the server stops.
