@@ -366,8 +366,8 @@ fn refuse_busy(closer: &Closer, stream: TcpStream, message: &str) {
     if stream.set_nonblocking(true).is_ok() {
         let _ = stream.write_all(answer.as_bytes());
         let _ = stream.write_all(&body);
-        closer.close(stream);
     }
+    closer.close(stream);
 }
 
 /// One connection's requests, in turn, until it closes, fails, or the server stops.
