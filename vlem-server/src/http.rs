@@ -816,8 +816,8 @@ mod tests {
                 .unwrap();
             closer.close(server);
             readers.push(std::thread::spawn(move || {
-                // A client that sends its whole request before it reads (curl, Python's
-                // requests) reports a failed send, not the answer.
+                // A client that sends its whole request before it reads (Python's requests
+                // and http.client) reports a failed send, not the answer.
                 sending.join().unwrap()?;
                 let mut answer = Vec::new();
                 client.read_to_end(&mut answer).map(|_| answer)
